@@ -1,0 +1,14 @@
+# Editable reflections pipeline. Only includes and `rule all`; see workflow/rules/.
+#   snakemake --cores 2 --config scene=demo            one scene end to end
+#   snakemake --cores 2 --config scene=demo preset=ci  tiny sizes (CI)
+#   snakemake --cores 2 benchmark_tracer               tracer benchmark table + JSON
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/synth.smk"
+include: "workflow/rules/benchmark.smk"
+
+
+rule all:
+    input:
+        scene_targets(SCENES),
+    default_target: True

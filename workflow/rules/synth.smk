@@ -1,0 +1,10 @@
+rule synth:
+    """Render a synthetic scene with exact buffers into a capture (Mitsuba 3)."""
+    output:
+        directory(f"{RESULTS}/{{scene}}/capture"),
+    params:
+        cfg=section("synth"),
+    log:
+        f"{RESULTS}/{{scene}}/logs/synth.log",
+    shell:
+        "{PY} -m stages.synth --config-json {params.cfg:q} --out {output} > {log} 2>&1"
