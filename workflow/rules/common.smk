@@ -48,6 +48,5 @@ def scene_targets(scenes):
     targets = []
     for scene in scenes:
         cfg = scene_config(scene)
-        if cfg["kind"] == "synthetic":
-            targets.append(f"{RESULTS}/{scene}/capture")
+        targets.append(f"{RESULTS}/{scene}/init/points.ply")
     return targets

@@ -1,0 +1,12 @@
+rule init:
+    """Dense Gaussian initialisation from the capture's depth + diffuse buffers."""
+    input:
+        capture=f"{RESULTS}/{{scene}}/capture",
+    output:
+        f"{RESULTS}/{{scene}}/init/points.ply",
+    params:
+        cfg=section("init"),
+    log:
+        f"{RESULTS}/{{scene}}/logs/init.log",
+    shell:
+        "{PY} -m stages.init --config-json {params.cfg:q} --capture {input.capture} --out $(dirname {output}) > {log} 2>&1"
