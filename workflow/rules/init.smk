@@ -5,8 +5,9 @@ rule init:
     output:
         f"{RESULTS}/{{scene}}/init/points.ply",
     params:
+        py=PY,
         cfg=section("init"),
     log:
         f"{RESULTS}/{{scene}}/logs/init.log",
     shell:
-        "{PY} -m stages.init --config-json {params.cfg:q} --capture {input.capture} --out $(dirname {output}) > {log} 2>&1"
+        "{params.py} -m stages.init --config-json {params.cfg:q} --capture {input.capture} --out $(dirname {output}) > {log} 2>&1"

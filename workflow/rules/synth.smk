@@ -3,8 +3,9 @@ rule synth:
     output:
         directory(f"{RESULTS}/{{scene}}/capture"),
     params:
+        py=PY,
         cfg=section("synth"),
     log:
         f"{RESULTS}/{{scene}}/logs/synth.log",
     shell:
-        "{PY} -m stages.synth --config-json {params.cfg:q} --out {output} > {log} 2>&1"
+        "{params.py} -m stages.synth --config-json {params.cfg:q} --out {output} > {log} 2>&1"

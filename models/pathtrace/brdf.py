@@ -1,0 +1,184 @@
+"""Cook-Torrance specular BRDF: GGX (Trowbridge-Reitz) NDF, Smith masking-shadowing,
+Schlick Fresnel with RGB F0 (paper Sec. 3.1, "a subset of the Disney BRDF").
+
+Conventions (shared with `sampling.py`):
+- `n`: unit surface normal; `wo`: unit direction toward the viewer (minus the incoming
+  camera ray); `wi`: unit reflected direction (toward the light); all world space.
+- `h = normalize(wo + wi)` is the half vector (microfacet normal).
+- `roughness` is perceptual, clamped to >= `MIN_ROUGHNESS` (0.01, as the reference),
+  GGX `alpha = roughness^2`.
+- Smith masking-shadowing `smith` is one of
+    "height_correlated" (default): G2 = 1 / (1 + Lambda(wo) + Lambda(wi)), exact Smith G1;
+    "separable": G2 = G1(wo) G1(wi), exact Smith G1;
+    "schlick": the reference's Smith-Schlick G, G1 = c / (c (1 - k) + k), k = alpha / 2
+      (Karis 2013's fit of Smith-GGX); G2 = G1(wo) G1(wi).
+  Height-correlated is the default: it is the physically more accurate form (Heitz 2014)
+  and, like separable, satisfies G2 <= G1(wo), so the VNDF sample weight is <= F.
+- `eval_specular` returns the BRDF times the cosine, f_s(wo, wi) * (n . wi).
+
+Everything is batched over leading dims, works in float32 and float64 and is
+differentiable (no NaN gradients at the clamps: square roots and divisions take
+clamped arguments, `torch.where` picks between finite branches).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+MIN_ROUGHNESS = 0.01
+SMITH_MODELS = ("height_correlated", "separable", "schlick")
+DEFAULT_SMITH = "height_correlated"
+
+# Smallest argument given to sqrt / denominators; keeps values and gradients finite in
+# float32 (sqrt(1e-30) = 1e-15, gradient 5e14 * 0 upstream = 0, never inf * 0).
+_TINY = 1e-30
+
+
+def check_smith(smith: str) -> None:
+    if smith not in SMITH_MODELS:
+        raise ValueError(f"smith={smith!r}: expected one of {SMITH_MODELS}")
+
+
+def _check_vec3(name: str, v: torch.Tensor) -> None:
+    if not isinstance(v, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(v).__name__}")
+    if v.shape[-1:] != (3,):
+        raise ValueError(f"{name} must have a trailing dimension of 3, got shape {tuple(v.shape)}")
+
+
+def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Row-wise dot product. [..., 3], [..., 3] -> [...]."""
+    return (a * b).sum(-1)
+
+
+def safe_normalize(v: torch.Tensor) -> torch.Tensor:
+    """v / |v| with a zero vector mapped to (a finite) zero. [..., 3] -> [..., 3]."""
+    return v * torch.rsqrt(dot(v, v).clamp_min(_TINY))[..., None]
+
+
+def safe_sqrt(x: torch.Tensor) -> torch.Tensor:
+    """sqrt(max(x, tiny)): finite value and gradient for x <= 0."""
+    return torch.sqrt(x.clamp_min(_TINY))
+
+
+def reflect(d: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """Perfect-mirror reflection of direction `d` about the unit normal `n`:
+    d - 2 (d . n) n. With d the camera ray direction (= -wo) this is the mirror
+    direction 2 (wo . n) n - wo. [..., 3], [..., 3] -> [..., 3]."""
+    return d - 2.0 * dot(d, n)[..., None] * n
+
+
+def roughness_to_alpha(roughness: torch.Tensor) -> torch.Tensor:
+    """Perceptual roughness -> GGX alpha = max(roughness, 0.01)^2. [...] -> [...]."""
+    r = roughness.clamp_min(MIN_ROUGHNESS)
+    return r * r
+
+
+def ggx_d(n_dot_h: torch.Tensor, alpha: torch.Tensor,
+          sin2_theta_h: torch.Tensor | None = None) -> torch.Tensor:
+    """GGX / Trowbridge-Reitz normal distribution D(h) (1/sr; integral of D (n.h) = 1).
+
+    D = alpha^2 / (pi (sin^2 + alpha^2 cos^2)^2) for n.h > 0, else 0.
+    n_dot_h: [...]; alpha: [...] (> 0); sin2_theta_h: optional [...] = |n x h|^2, pass it
+    when available: 1 - cos^2 cancels catastrophically near the mirror peak in float32.
+    """
+    c = n_dot_h.clamp(0.0, 1.0)
+    if sin2_theta_h is None:
+        sin2 = (1.0 - c) * (1.0 + c)
+    else:
+        sin2 = sin2_theta_h.clamp(0.0, 1.0)
+    a2 = alpha * alpha
+    t = sin2 + a2 * c * c
+    d = a2 / (math.pi * (t * t).clamp_min(_TINY))
+    return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
+
+
+def _smith_a(cos: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """a(c) = sqrt(c^2 + alpha^2 (1 - c^2)) with c clamped to [0, 1]: the Smith-GGX
+    Lambda(c) = (a - c) / (2 c). [...] -> [...]."""
+    c = cos.clamp(0.0, 1.0)
+    return safe_sqrt(c * c + alpha * alpha * (1.0 - c) * (1.0 + c))
+
+
+def smith_g1(n_dot_v: torch.Tensor, alpha: torch.Tensor, smith: str = DEFAULT_SMITH) -> torch.Tensor:
+    """Smith masking G1(v) of GGX. [...] -> [...], 0 for n.v <= 0.
+
+    "height_correlated" / "separable": exact G1 = 2c / (c + sqrt(alpha^2 + (1 - alpha^2) c^2));
+    "schlick": c / (c (1 - k) + k), k = alpha / 2.
+    """
+    check_smith(smith)
+    c = n_dot_v.clamp(0.0, 1.0)
+    if smith == "schlick":
+        k = 0.5 * alpha
+        g = c / (c * (1.0 - k) + k)
+    else:
+        g = 2.0 * c / (c + _smith_a(c, alpha)).clamp_min(_TINY)
+    return torch.where(n_dot_v > 0, g, torch.zeros_like(g))
+
+
+def smith_visibility(n_dot_o: torch.Tensor, n_dot_i: torch.Tensor, alpha: torch.Tensor,
+                     smith: str = DEFAULT_SMITH) -> torch.Tensor:
+    """V = G2 / (4 (n.wo) (n.wi)), written without dividing by the cosines, so it stays
+    finite at grazing angles. Cosines are clamped to [0, 1]; the caller masks n.v <= 0.
+    [...] -> [...].
+
+    height_correlated: V = 0.5 / (c_i a_o + c_o a_i)
+    separable:         V = 1 / ((c_o + a_o) (c_i + a_i))
+    schlick:           V = 1 / (4 (c_o (1 - k) + k) (c_i (1 - k) + k)), k = alpha / 2
+    """
+    check_smith(smith)
+    co = n_dot_o.clamp(0.0, 1.0)
+    ci = n_dot_i.clamp(0.0, 1.0)
+    if smith == "schlick":
+        k = 0.5 * alpha
+        return 0.25 / ((co * (1.0 - k) + k) * (ci * (1.0 - k) + k))
+    ao, ai = _smith_a(co, alpha), _smith_a(ci, alpha)
+    if smith == "height_correlated":
+        return 0.5 / (ci * ao + co * ai).clamp_min(_TINY)
+    return 1.0 / ((co + ao) * (ci + ai)).clamp_min(_TINY)
+
+
+def smith_g(n_dot_o: torch.Tensor, n_dot_i: torch.Tensor, alpha: torch.Tensor,
+            smith: str = DEFAULT_SMITH) -> torch.Tensor:
+    """Smith masking-shadowing G2(wo, wi) in [0, 1]; 0 if either cosine <= 0. [...] -> [...].
+
+    height_correlated: 1 / (1 + Lambda(wo) + Lambda(wi)) = 2 c_o c_i / (c_i a_o + c_o a_i);
+    separable / schlick: G1(wo) G1(wi).
+    """
+    g = 4.0 * n_dot_o.clamp(0.0, 1.0) * n_dot_i.clamp(0.0, 1.0) * smith_visibility(n_dot_o, n_dot_i, alpha, smith)
+    return torch.where((n_dot_o > 0) & (n_dot_i > 0), g, torch.zeros_like(g))
+
+
+def fresnel_schlick(f0: torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
+    """Schlick Fresnel F = F0 + (1 - F0) (1 - cos)^5, cos = wo . h clamped to [0, 1].
+    f0: [..., 3]; cos: [...] -> [..., 3]. F(cos = 1) = F0 exactly."""
+    m = 1.0 - cos.clamp(0.0, 1.0)
+    m2 = m * m
+    w = (m2 * m2 * m)[..., None]
+    return f0 + (1.0 - f0) * w
+
+
+def eval_specular(n: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor, roughness: torch.Tensor,
+                  f0: torch.Tensor, smith: str = DEFAULT_SMITH) -> torch.Tensor:
+    """Cook-Torrance specular BRDF times cosine: f_s(wo, wi) (n . wi)
+    = F(wo . h) D(h) G2(wo, wi) / (4 (n . wo)) = F D V (n . wi).
+
+    n, wo, wi: [..., 3] unit; roughness: [...]; f0: [..., 3] -> [..., 3].
+    Zero where n.wo <= 0, n.wi <= 0 or n.h <= 0 (wo below the surface included).
+    """
+    for name, v in (("n", n), ("wo", wo), ("wi", wi), ("f0", f0)):
+        _check_vec3(name, v)
+    check_smith(smith)
+    alpha = roughness_to_alpha(roughness)
+    h = safe_normalize(wo + wi)
+    co, ci = dot(n, wo), dot(n, wi)
+    nh = dot(n, h)
+    sin2 = dot(torch.linalg.cross(n, h), torch.linalg.cross(n, h))
+    d = ggx_d(nh, alpha, sin2)
+    v = smith_visibility(co, ci, alpha, smith)
+    f = fresnel_schlick(f0, dot(wo, h))
+    val = f * (d * v * ci.clamp(0.0, 1.0))[..., None]
+    valid = (co > 0) & (ci > 0) & (nh > 0)
+    return torch.where(valid[..., None], val, torch.zeros_like(val))

@@ -1,0 +1,135 @@
+"""The bounce loop: primary segment -> diffuse layer + G-buffer; reflection rays read the diffuse radiance cache.
+
+Eq. 3 of the paper: L_o = L_d_hat + integral of L_i f_s cos. The first segment of
+a path gives the diffuse layer (supervised by the diffuse buffer) and the G-buffer
+(depth, normal, roughness, F0). The reflection ray starts at the expected
+termination point (blended depth / accumulated opacity, likewise roughness and F0), is importance sampled from the GGX specular lobe, and every
+further segment reads the diffuse layer of the Gaussians it hits, weighted by the
+path throughput. Max path length K counts segments: K = 1 is primary only, K = 3
+(paper) is two reflection rays.
+
+Gradients (paper Sec. 3.2, REFERENCE.md): the specular estimate gives gradients
+only to the geometry and diffuse colour of the Gaussians hit by reflection rays;
+throughput, normals and BRDF parameters are constants (detached). Those gradients
+are scaled by the throughput (chain rule) and by (1 - roughness of the previous
+vertex)^3, which leaves the forward value unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from models.gaussians import Gaussians
+from models.pathtrace.brdf import fresnel_schlick, reflect
+from models.pathtrace.sampling import sample_specular
+from models.tracer.output import TraceOutput
+
+# trace_fn(origins [R, 3], dirs [R, 3], gaussians) -> TraceOutput (differentiable)
+TraceFn = Callable[[torch.Tensor, torch.Tensor, Gaussians], TraceOutput]
+
+
+@dataclass
+class PathConfig:
+    max_path_length: int = 3  # segments per path: 1 = primary only (no reflections), 3 = paper
+    normal_min_norm: float = 0.7  # a path stops where the accumulated normal is shorter than this
+    min_roughness: float = 0.01  # roughness clamp at a vertex (GGX alpha = roughness^2); at or below it
+    # the vertex is a perfect mirror (delta reflection, weight = Schlick F(n.wo)): the limit, without noise
+    origin_offset: float = 0.01  # reflection origin moved this far along the reflected ray (scene units);
+    # along the ray, not the normal, so the reflected line is exact (a flat mirror gives the mirrored image)
+    sampler: str = "vndf"  # vndf (visible normals, default) | ndf (half-vector, as the reference)
+    grad_roughness_power: float = 3.0  # bounce gradients scaled by (1 - roughness_prev)^power
+
+    def __post_init__(self) -> None:
+        if self.max_path_length < 1:
+            raise ValueError(f"max_path_length must be >= 1, got {self.max_path_length}")
+        if self.sampler not in ("vndf", "ndf"):
+            raise ValueError(f"sampler must be 'vndf' or 'ndf', got {self.sampler!r}")
+
+
+@dataclass
+class PathOutput:
+    primary: TraceOutput  # first segment: diffuse layer + G-buffer, [R] rays
+    specular: torch.Tensor  # [R, 3] sum over reflection segments of throughput x diffuse cache
+    bounces: list[torch.Tensor] = field(default_factory=list)  # [R, 3] per reflection segment (sum = specular)
+    alive: list[torch.Tensor] = field(default_factory=list)  # [R] bool, paths still going at each bounce
+
+    @property
+    def diffuse(self) -> torch.Tensor:
+        return self.primary.diffuse
+
+    @property
+    def final(self) -> torch.Tensor:
+        """[R, 3] diffuse + specular (the composite; not supervised in training)."""
+        return self.primary.diffuse + self.specular
+
+
+def _scale_grad(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """x in the forward pass, scale * dL/dx in the backward pass."""
+    return x.detach() + scale * (x - x.detach())
+
+
+def trace_paths(
+    trace_fn: TraceFn,
+    origins: torch.Tensor,  # [R, 3]
+    dirs: torch.Tensor,  # [R, 3] unit
+    gaussians: Gaussians,
+    config: PathConfig = PathConfig(),
+    generator: torch.Generator | None = None,
+    primary: TraceOutput | None = None,
+) -> PathOutput:
+    """One path sample per ray. ``primary`` may be passed to reuse a first segment (N spp rendering)."""
+    if primary is None:
+        primary = trace_fn(origins, dirs, gaussians)
+    rays = origins.shape[0]
+    specular = torch.zeros((rays, 3), dtype=origins.dtype, device=origins.device)
+    out = PathOutput(primary=primary, specular=specular)
+    if config.max_path_length == 1 or rays == 0:
+        return out
+
+    index = torch.arange(rays, device=origins.device)  # rays still alive -> row in the full batch
+    seg = primary
+    o, d = origins, dirs
+    throughput = torch.ones((rays, 3), dtype=origins.dtype, device=origins.device)
+    for _ in range(config.max_path_length - 1):
+        n_acc = seg.normal.detach()
+        n_len = n_acc.norm(dim=-1)
+        keep = n_len >= config.normal_min_norm
+        n = n_acc / n_len.clamp_min(1e-12)[:, None]
+        wo = -d
+        # a vertex seen from behind reflects as seen from the front (accumulated normals can point away)
+        n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)
+        # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T)
+        opacity = (1.0 - seg.transmittance.detach().reshape(-1, 1)).clamp_min(1e-6)
+        rough_raw = seg.roughness.detach().reshape(-1, 1) / opacity
+        rough = rough_raw.reshape(-1).clamp(config.min_roughness, 1.0)
+        f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)
+        x = o + d * (seg.depth.detach().reshape(-1, 1) / opacity)
+        u = torch.rand((len(index), 2), generator=generator, dtype=o.dtype, device=o.device)
+        wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler)
+        mirror = rough_raw.reshape(-1) <= config.min_roughness
+        if mirror.any():
+            cos_o = (n * wo).sum(-1).clamp(0.0, 1.0)
+            wi = torch.where(mirror[:, None], reflect(d, n), wi)
+            weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o), weight)
+            valid = torch.where(mirror, cos_o > 0, valid)
+        keep = keep & valid & (weight.amax(-1) > 0)
+        alive = torch.zeros(rays, dtype=torch.bool, device=origins.device)
+        alive[index[keep]] = True
+        out.alive.append(alive)
+        if not keep.any():
+            break
+        index = index[keep]
+        throughput = throughput[keep] * weight[keep].detach()
+        d = wi[keep]
+        o = x[keep] + config.origin_offset * d
+        grad_scale = (1.0 - rough[keep]).clamp_min(0.0) ** config.grad_roughness_power
+        seg = trace_fn(o, d, gaussians)
+        contrib = throughput * _scale_grad(seg.diffuse, grad_scale[:, None])
+        bounce = torch.zeros_like(specular).index_put((index,), contrib)
+        out.bounces.append(bounce)
+        specular = specular + bounce
+    out.specular = specular
+    return out

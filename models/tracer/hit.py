@@ -1,0 +1,112 @@
+"""Warp functions for one ray / one Gaussian: max-response hit and its gradient.
+
+In the local frame x_l = M (x - mean) the Gaussian is the unit isotropic one; the
+local ray o_l + t d_l keeps the world ray parameter t. The max response lies at the
+local ray's closest point to the origin: t* = -(o_l . d_l) / (d_l . d_l), r^2 = |o_l + t* d_l|^2.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from models.tracer.structs import vec16
+
+
+@wp.func
+def ray_box_overlap(o: wp.vec3, d: wp.vec3, s: float, t_min: float) -> int:
+    """1 when the ray o + t d, t > t_min, meets the cube [-s, s]^3 (slab test)."""
+    t0 = float(-1.0e30)
+    t1 = float(1.0e30)
+    for c in range(3):
+        if wp.abs(d[c]) < 1.0e-30:
+            if wp.abs(o[c]) > s:
+                return 0
+        else:
+            inv = 1.0 / d[c]
+            ta = (-s - o[c]) * inv
+            tb = (s - o[c]) * inv
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    if t0 <= t1 and t1 > t_min:
+        return 1
+    return 0
+
+
+@wp.func
+def kernel_response(r2: float, p: int) -> float:
+    """exp(-r^(2p) / (2p)) from r^2."""
+    return wp.exp(-wp.pow(r2, float(p)) / float(2 * p))
+
+
+@wp.func
+def eval_hit(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: float, s: float,
+             p: int, alpha_min: float, alpha_max: float, t_min: float, obb_test: int) -> wp.vec3:
+    """(t, alpha, obb_pass); alpha = 0 when the hit is rejected."""
+    if s <= 0.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    o_l = w2l * (o - mean)
+    d_l = w2l * d
+    if obb_test != 0:
+        if ray_box_overlap(o_l, d_l, s, t_min) == 0:
+            return wp.vec3(0.0, 0.0, 0.0)
+    dd = wp.dot(d_l, d_l)
+    if dd <= 0.0:
+        return wp.vec3(0.0, 0.0, 1.0)
+    t = -wp.dot(o_l, d_l) / dd
+    q = o_l + t * d_l
+    if t <= t_min:
+        return wp.vec3(t, 0.0, 1.0)
+    if wp.max(wp.max(wp.abs(q[0]), wp.abs(q[1])), wp.abs(q[2])) > s:
+        return wp.vec3(t, 0.0, 1.0)
+    alpha = wp.min(alpha_max, opacity * kernel_response(wp.dot(q, q), p))
+    if alpha <= alpha_min:
+        return wp.vec3(t, 0.0, 1.0)
+    return wp.vec3(t, alpha, 1.0)
+
+
+@wp.func
+def eval_packed(o: wp.vec3, d: wp.vec3, rec: vec16, p: int, alpha_min: float, alpha_max: float,
+                t_min: float, obb_test: int) -> wp.vec3:
+    """eval_hit on a packed record (see structs.vec16)."""
+    mean = wp.vec3(rec[0], rec[1], rec[2])
+    w2l = wp.mat33(rec[3], rec[4], rec[5], rec[6], rec[7], rec[8], rec[9], rec[10], rec[11])
+    return eval_hit(o, d, mean, w2l, rec[12], rec[13], p, alpha_min, alpha_max, t_min, obb_test)
+
+
+@wp.func
+def hit_less(t_a: float, id_a: int, t_b: float, id_b: int) -> int:
+    """Order of hits: by t, ties by Gaussian id (as a stable sort over ids)."""
+    if t_a < t_b:
+        return 1
+    if t_a == t_b and id_a < id_b:
+        return 1
+    return 0
+
+
+@wp.func
+def hit_grad_geometry(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: float,
+                      p: int, alpha_max: float, dl_dalpha: float, dl_dt: float,
+                      g_mean: wp.array(dtype=wp.vec3), g_w2l: wp.array(dtype=wp.mat33),
+                      g_opacity: wp.array(dtype=float), gid: int):
+    """Chain dL/dalpha and dL/dt of one accepted hit to mean, M and opacity (atomics).
+
+    r^2 is the minimum over t, so by the envelope theorem dr2/do_l = 2q, dr2/dd_l = 2 t q.
+    dt/do_l = -d_l / dd, dt/dd_l = -(o_l + 2 t d_l) / dd.
+    """
+    v = o - mean
+    o_l = w2l * v
+    d_l = w2l * d
+    dd = wp.dot(d_l, d_l)
+    t = -wp.dot(o_l, d_l) / dd
+    q = o_l + t * d_l
+    r2 = wp.dot(q, q)
+    response = kernel_response(r2, p)
+    raw = opacity * response
+    g_r2 = float(0.0)
+    if raw < alpha_max:
+        wp.atomic_add(g_opacity, gid, dl_dalpha * response)
+        g_r2 = dl_dalpha * (-0.5 * raw * wp.pow(r2, float(p - 1)))
+    g_ol = (2.0 * g_r2) * q - (dl_dt / dd) * d_l
+    g_dl = (2.0 * g_r2 * t) * q - (dl_dt / dd) * (o_l + (2.0 * t) * d_l)
+    wp.atomic_add(g_w2l, gid, wp.outer(g_ol, v) + wp.outer(g_dl, d))
+    wp.atomic_add(g_mean, gid, -(wp.transpose(w2l) * g_ol))

@@ -1,0 +1,45 @@
+"""Per-ray outputs of a trace."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+# Differentiable per-ray layers, in the order the kernels pack them, with their channel count.
+LAYERS: dict[str, int] = {"diffuse": 3, "depth": 1, "normal": 3, "roughness": 1, "f0": 3}
+
+
+@dataclass
+class TraceOutput:
+    """Front-to-back blended layers for R rays.
+
+    Blending: w_i = T_i alpha_i over accepted hits sorted by t, T_0 = 1,
+    T_{i+1} = T_i (1 - alpha_i); a hit is blended while T_i >= transmittance_threshold.
+    Tail rule (all five layers alike, including depth): when accepted hits were left
+    unblended ("truncated"), the remaining transmittance T_end is filled with the
+    running weight-normalised average sum(w f) / sum(w); since sum(w) = 1 - T_end this
+    is out = sum(w f) / (1 - T_end). Without truncation out = sum(w f) (background 0).
+    """
+
+    diffuse: torch.Tensor        # [R, 3] blended linear diffuse RGB
+    depth: torch.Tensor          # [R]    expected ray parameter t (distance when dirs are unit)
+    normal: torch.Tensor         # [R, 3] blended normal, NOT normalised
+    roughness: torch.Tensor      # [R]    blended perceptual roughness
+    f0: torch.Tensor             # [R, 3] blended base reflectance
+    transmittance: torch.Tensor  # [R]    T_end after the last blended hit (before the tail fill)
+    hit_count: torch.Tensor      # [R] int32 accepted hits (alpha > alpha_min, in box, t > t_min)
+    blended_count: torch.Tensor  # [R] int32 hits blended before the transmittance threshold
+    # Diagnostics (Warp tracer only; None from the reference).
+    candidates: torch.Tensor | None = None      # [R] int32 BVH leaves (world AABBs) visited
+    obb_candidates: torch.Tensor | None = None  # [R] int32 candidates passing the oriented-box test
+    overflow_rays: int = 0                      # rays whose replay buffer overflowed (then re-run)
+    replay_capacity: int = 0                    # replay slots per ray used by the final launch
+    extra: dict = field(default_factory=dict)
+
+    def layer(self, name: str) -> torch.Tensor:
+        """One differentiable layer as [R, C]."""
+        if name not in LAYERS:
+            raise ValueError(f"unknown layer {name!r}; expected one of {list(LAYERS)}")
+        value = getattr(self, name)
+        return value.reshape(value.shape[0], -1)

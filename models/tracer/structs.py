@@ -1,0 +1,96 @@
+"""Warp structs bundling the arrays a tracer launch reads and writes."""
+
+from __future__ import annotations
+
+import warp as wp
+
+# Packed traversal record per Gaussian (one 64-byte load per candidate):
+# [mean (3), M row-major (9), opacity, cutoff s, 0, 0]
+vec16 = wp.types.vector(length=16, dtype=wp.float32)
+
+
+@wp.struct
+class GaussianData:
+    """Activated per-Gaussian values, N entries each."""
+
+    means: wp.array(dtype=wp.vec3)       # [N] world mean
+    w2l: wp.array(dtype=wp.mat33)        # [N] M = S^-1 R^T, x_local = M (x - mean)
+    opacity: wp.array(dtype=float)       # [N] sigmoid(logit)
+    cutoff: wp.array(dtype=float)        # [N] box half-size s in the local frame (0 = masked)
+    diffuse: wp.array(dtype=wp.vec3)     # [N]
+    normal: wp.array(dtype=wp.vec3)      # [N]
+    roughness: wp.array(dtype=float)     # [N]
+    f0: wp.array(dtype=wp.vec3)          # [N]
+    packed: wp.array(dtype=vec16)        # [N] the above geometry packed for traversal
+
+
+@wp.struct
+class TraceParams:
+    bvh: wp.uint64            # wp.Bvh id over the Gaussians' world bounds
+    kernel_p: int             # response exp(-r^(2p) / (2p))
+    alpha_min: float
+    alpha_max: float
+    trans_threshold: float
+    t_min: float
+    k: int                    # hits per integration round
+    capacity: int             # replay slots per ray
+    obb_test: int             # 1: slab test against the oriented box before evaluating
+    repeated_kbuffer: int     # 1: 3DGRT-style re-traversal per round (ablation)
+
+
+@wp.struct
+class Replay:
+    """Per-ray replay buffer; after the forward its first `blended` slots are sorted by t."""
+
+    ids: wp.array2d(dtype=wp.int32)   # [R, capacity] Gaussian id
+    t: wp.array2d(dtype=float)        # [R, capacity] ray parameter of the max-response point
+    alpha: wp.array2d(dtype=float)    # [R, capacity]
+    trans: wp.array2d(dtype=float)    # [R, capacity] transmittance in front of the hit (blended only)
+
+
+@wp.struct
+class RayOutputs:
+    diffuse: wp.array(dtype=wp.vec3)      # [R]
+    depth: wp.array(dtype=float)          # [R]
+    normal: wp.array(dtype=wp.vec3)       # [R]
+    roughness: wp.array(dtype=float)      # [R]
+    f0: wp.array(dtype=wp.vec3)           # [R]
+    transmittance: wp.array(dtype=float)  # [R]
+    hit_count: wp.array(dtype=wp.int32)   # [R] accepted hits
+    blended: wp.array(dtype=wp.int32)     # [R] blended hits
+    candidates: wp.array(dtype=wp.int32)  # [R] BVH leaves visited (first traversal)
+    obb_candidates: wp.array(dtype=wp.int32)  # [R] candidates passing the oriented-box test
+    needed: wp.array(dtype=wp.int32)      # [R] replay slots needed when overflowing, else 0
+
+
+@wp.struct
+class RayGrads:
+    """dLoss/d(outputs), R entries each (also used for the fused L1 targets)."""
+
+    diffuse: wp.array(dtype=wp.vec3)
+    depth: wp.array(dtype=float)
+    normal: wp.array(dtype=wp.vec3)
+    roughness: wp.array(dtype=float)
+    f0: wp.array(dtype=wp.vec3)
+    transmittance: wp.array(dtype=float)
+
+
+@wp.struct
+class GaussianGrads:
+    """dLoss/d(activated values), N entries each, accumulated with atomics."""
+
+    means: wp.array(dtype=wp.vec3)
+    w2l: wp.array(dtype=wp.mat33)
+    opacity: wp.array(dtype=float)
+    diffuse: wp.array(dtype=wp.vec3)
+    normal: wp.array(dtype=wp.vec3)
+    roughness: wp.array(dtype=float)
+    f0: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class L1Loss:
+    """Fused per-pixel L1: loss = sum_layer weight * mean |out - target|."""
+
+    weights: wp.array(dtype=float)  # [5] diffuse, depth, normal, roughness, f0 (0 = no target)
+    inv_rays: float                 # 1 / total number of rays (all threads)

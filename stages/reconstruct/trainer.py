@@ -1,0 +1,306 @@
+"""Optimisation of ONE Gaussian scene: diffuse + G-buffer losses on the first segment, specular on paths.
+
+Paper Eq. 4-7 with the reference schedule: L1 losses in linear space, warm-up with
+primary rays only, then reflections (and far-field Gaussians when reflections can
+see past the captured geometry), Adam with per-parameter learning rates,
+exponential position decay, pruning by accumulated blending weight, clamps.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from models.capture import Capture
+from models.gaussians import Gaussians
+from models.pathtrace.paths import PathConfig, trace_paths
+from models.tracer.output import TraceOutput
+
+from .config import ReconstructConfig
+from .data import RaySet, build_rayset
+from .far_field import far_field_gaussians
+
+log = logging.getLogger("stages.reconstruct")
+
+PARAM_LR = {  # Gaussians field -> LearningRates field
+    "means": "position_init", "quats": "rotation", "log_scales": "scale", "opacity_logits": "opacity",
+    "diffuse": "diffuse", "normals": "normal", "roughness": "roughness", "f0": "f0",
+}
+GBUFFER = ("depth", "normal", "roughness", "f0")
+
+
+class Backend:
+    """What the trainer needs from a tracer: refit/rebuild on new parameters, then differentiable traces."""
+
+    def update(self, gaussians: Gaussians) -> None: ...
+
+    def trace(self, origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussians) -> TraceOutput: ...
+
+
+def psnr(x: torch.Tensor, y: torch.Tensor) -> float:
+    mse = float(((x - y) ** 2).mean())
+    return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+class Trainer:
+    def __init__(self, capture: Capture, init: Gaussians, config: ReconstructConfig, backend: Backend):
+        self.config = config
+        self.backend = backend
+        self.rays: RaySet = build_rayset(capture, "train", config.radiance_clamp)
+        self.extent = capture.camera_extent()
+        self.centre = np.mean([v.camera.origin for v in self.rays.views], axis=0)
+        self.decisions: list[str] = []
+        self.weights = self._active_losses()
+        self.reflections = self._needs_reflections()
+        self.far_field = self._needs_far_field(capture)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.step = 0
+        self.far_field_added = False
+        self.params = {k: v.detach().clone().requires_grad_(True) for k, v in init.params().items()}
+        self.optimizer = self._make_optimizer()
+        for d in self.decisions:
+            log.info("decision: %s", d)
+
+    # ----------------------------------------------------------------- decisions
+    def _active_losses(self) -> dict[str, float]:
+        weights = {}
+        for layer in ("diffuse", "specular", *GBUFFER):
+            w = getattr(self.config.loss, layer)
+            if w == 0:
+                self.decisions.append(f"loss {layer}: weight 0 in config, off")
+            elif layer not in self.rays.targets:
+                self.decisions.append(f"loss {layer}: the capture has no {layer} buffer, off")
+            else:
+                weights[layer] = w
+        if "diffuse" not in weights:
+            raise ValueError("reconstruction needs the diffuse buffer (loss weight > 0 and the layer in the capture)")
+        return weights
+
+    def _needs_reflections(self) -> bool:
+        if self.config.max_path_length <= 1:
+            self.decisions.append("reflections: max_path_length 1, primary rays only")
+            return False
+        if "specular" not in self.weights:
+            self.decisions.append("reflections: no specular supervision, primary rays only")
+            return False
+        peak = float(self.rays.targets["specular"].abs().max())
+        if peak < 1e-4:
+            self.decisions.append(f"reflections: specular buffers are ~0 (max {peak:.2e}), primary rays only")
+            return False
+        self.decisions.append(f"reflections: on after step {self.config.warmup}, max path length {self.config.max_path_length}")
+        return True
+
+    def _needs_far_field(self, capture: Capture) -> bool:
+        mode = self.config.far_field
+        if mode not in ("auto", "on", "off"):
+            raise ValueError(f"far_field must be auto, on or off, got {mode!r}")
+        if not self.reflections or mode == "off":
+            self.decisions.append(f"far field: off ({'config' if mode == 'off' else 'no reflections'})")
+            return False
+        if mode == "on":
+            self.decisions.append(f"far field: on (config), {self.config.far_field_count} Gaussians")
+            return True
+        open_pixels = float((~self.rays.mask).float().mean())
+        if open_pixels > 0:
+            self.decisions.append(
+                f"far field: on, {open_pixels:.1%} of training pixels see past the captured geometry"
+            )
+            return True
+        self.decisions.append("far field: off, every training pixel hits captured geometry (closed scene)")
+        return False
+
+    # ----------------------------------------------------------------- parameters
+    def gaussians(self) -> Gaussians:
+        return Gaussians(**self.params)
+
+    def _make_optimizer(self) -> torch.optim.Adam:
+        groups = [{"params": [p], "name": k, "lr": self._base_lr(k)} for k, p in self.params.items()]
+        return torch.optim.Adam(groups, eps=self.config.adam_eps)
+
+    def _base_lr(self, name: str) -> float:
+        lr = getattr(self.config.lr, PARAM_LR[name])
+        return lr * self.extent if name == "means" else lr
+
+    def position_lr(self, step: int) -> float:
+        lr = self.config.lr
+        t = min(step / max(self.config.iterations, 1), 1.0)
+        return self.extent * math.exp((1 - t) * math.log(lr.position_init) + t * math.log(lr.position_final))
+
+    def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None) -> None:
+        """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians, keeping Adam's state aligned."""
+        new_opt_state = {}
+        for group in self.optimizer.param_groups:
+            name = group["name"]
+            old = group["params"][0]
+            state = self.optimizer.state.get(old, {})
+            value = old.detach()
+            moments = {k: state[k] for k in ("exp_avg", "exp_avg_sq") if k in state}
+            if keep is not None:
+                value = value[keep]
+                moments = {k: v[keep] for k, v in moments.items()}
+            if extra is not None:
+                add = getattr(extra, name).to(value.dtype)
+                value = torch.cat([value, add])
+                moments = {k: torch.cat([v, torch.zeros_like(add)]) for k, v in moments.items()}
+            new = value.clone().requires_grad_(True)
+            self.params[name] = new
+            group["params"] = [new]
+            if moments:
+                new_opt_state[new] = {"step": state["step"], **moments}
+        self.optimizer.state.clear()
+        self.optimizer.state.update(new_opt_state)
+
+    @torch.no_grad()
+    def _clamp(self) -> None:
+        self.params["diffuse"].clamp_(min=0.0)
+        self.params["roughness"].clamp_(0.0, 1.0)
+        self.params["f0"].clamp_(0.0, 1.0)
+
+    # ----------------------------------------------------------------- steps
+    def sample_batch(self) -> RaySet:
+        n = self.config.rays_per_step
+        if n <= 0:
+            view = int(torch.randint(len(self.rays.views), (1,), generator=self.generator))
+            return self.rays.view_rays(view)
+        return self.rays.subset(torch.randint(len(self.rays), (n,), generator=self.generator))
+
+    def losses(self, batch: RaySet, reflections: bool) -> tuple[torch.Tensor, dict]:
+        g = self.gaussians()
+        self.backend.update(g)
+        path_cfg = PathConfig(max_path_length=self.config.max_path_length if reflections else 1,
+                              sampler=self.config.sampler)
+        out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
+        terms = {}
+        m = batch.mask
+        for layer, w in self.weights.items():
+            if layer == "specular":
+                if not reflections:
+                    continue
+                pred = out.specular
+            else:
+                pred = out.primary.layer(layer)
+            target = batch.targets[layer]
+            err = (pred - target.reshape(pred.shape)).abs()
+            if layer in GBUFFER:  # G-buffer values exist only where the ray hits geometry
+                err = err[m] if m.any() else err[:0]
+            terms[layer] = w * err.mean() if err.numel() else pred.sum() * 0
+        total = sum(terms.values())
+        metrics = {f"loss_{k}": v.item() for k, v in terms.items()}
+        metrics["loss"] = total.item()
+        metrics["psnr_diffuse"] = psnr(out.primary.diffuse.detach(), batch.targets["diffuse"])
+        if reflections and "specular" in batch.targets:
+            metrics["psnr_specular"] = psnr(out.specular.detach(), batch.targets["specular"])
+        return total, metrics
+
+    def train_step(self) -> dict:
+        cfg = self.config
+        reflections = self.reflections and self.step >= cfg.warmup
+        if reflections and self.far_field and not self.far_field_added:
+            ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed)
+            self._replace(extra=ff)
+            self.far_field_added = True
+            log.info("step %d: added %d far-field Gaussians", self.step, len(ff))
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = self.position_lr(self.step)
+        total, metrics = self.losses(self.sample_batch(), reflections)
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        for name, p in self.params.items():
+            if p.grad is not None and not torch.isfinite(p.grad).all():
+                raise FloatingPointError(f"step {self.step}: non-finite gradient in {name}")
+        self.optimizer.step()
+        self._clamp()
+        self.step += 1
+        if cfg.prune_every > 0 and self.step >= cfg.prune_from and self.step % cfg.prune_every == 0:
+            metrics["pruned"] = self.prune()
+        metrics["step"] = self.step
+        metrics["gaussians"] = len(self.params["means"])
+        return metrics
+
+    def blending_weights(self, views: list[int]) -> torch.Tensor:
+        """[N] accumulated blending weight per Gaussian, averaged over ``views`` (d sum(diffuse_R) / d diffuse_i,R)."""
+        acc = torch.zeros(len(self.params["means"]))
+        for v in views:
+            g = Gaussians(**{k: p.detach().clone().requires_grad_(k == "diffuse") for k, p in self.params.items()})
+            self.backend.update(g)
+            rays = self.rays.view_rays(v)
+            out = self.backend.trace(rays.origins, rays.dirs, g)
+            (grad,) = torch.autograd.grad(out.diffuse[:, 0].sum(), g.diffuse)
+            acc += grad[:, 0]
+        return acc / max(len(views), 1)
+
+    def prune(self) -> int:
+        n_views = min(self.config.prune_views, len(self.rays.views))
+        views = torch.randperm(len(self.rays.views), generator=self.generator)[:n_views].tolist()
+        keep = self.blending_weights(views) >= self.config.prune_min_weight
+        removed = int((~keep).sum())
+        if removed and keep.any():
+            self._replace(keep=keep)
+        return removed
+
+    # ----------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "params": {k: v.detach().clone() for k, v in self.params.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "far_field_added": self.far_field_added,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = state["step"]
+        self.far_field_added = state["far_field_added"]
+        self.params = {k: v.clone().requires_grad_(True) for k, v in state["params"].items()}
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+
+    def save_checkpoint(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path: Path) -> None:
+        self.load_state_dict(torch.load(path, weights_only=False))
+
+
+def train(trainer: Trainer, out_dir: Path, progress: bool = True,
+          on_step: Callable[[dict], None] | None = None, until: int | None = None) -> dict:
+    """Run to ``config.iterations`` (or stop early at step ``until``, checkpointing there), resuming from
+    the trainer's step; logs JSON lines and checkpoints."""
+    from tqdm import tqdm
+
+    cfg = trainer.config
+    out_dir.mkdir(parents=True, exist_ok=True)
+    log_path = out_dir / "train_log.jsonl"
+    start = time.perf_counter()
+    bar = tqdm(total=cfg.iterations, initial=trainer.step, disable=not progress, desc="reconstruct", unit="step")
+    metrics: dict = {}
+    with log_path.open("a") as log_file:
+        end = cfg.iterations if until is None else min(until, cfg.iterations)
+        while trainer.step < end:
+            metrics = trainer.train_step()
+            metrics["time_s"] = round(time.perf_counter() - start, 3)
+            bar.update(1)
+            bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr_d=f"{metrics['psnr_diffuse']:.1f}",
+                            n=metrics["gaussians"], refresh=False)
+            if trainer.step % cfg.log_every == 0 or trainer.step == cfg.iterations or "pruned" in metrics:
+                log_file.write(json.dumps(metrics) + "\n")
+                log_file.flush()
+            if trainer.step % cfg.checkpoint_every == 0 or trainer.step == end:
+                trainer.save_checkpoint(out_dir / "checkpoints" / "last.pt")
+            if on_step:
+                on_step(metrics)
+    bar.close()
+    return metrics

@@ -1,0 +1,166 @@
+"""Typed spec -> Mitsuba 3 scene dict (built in code), plus the per-shape material table the
+split integrator reads at the first hit (layer routing, roughness, F0, principled lobe params)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .spec import MaterialSpec, ObjectSpec, SynthSpec, TransformSpec
+from .textures import make_texture
+
+VARIANT = "llvm_ad_rgb"
+
+# Layer routing of a material at the first vertex (see integrator.py).
+ROUTE_DIFFUSE = 0  # every first-vertex contribution is diffuse; specular exactly 0
+ROUTE_SPECULAR = 1  # every first-vertex contribution is specular; diffuse exactly 0
+ROUTE_SPLIT = 2  # principled with both lobes: diffuse lobe recomputed, specular = full - diffuse
+
+
+def mitsuba():
+    """The ``mitsuba`` module with the project's variant set (idempotent)."""
+    import mitsuba as mi
+
+    if mi.variant() != VARIANT:
+        mi.set_variant(VARIANT)
+    return mi
+
+
+def _rotation(axis, angle_deg: float) -> np.ndarray:
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    t = math.radians(angle_deg)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)
+
+
+def to_world_matrix(tr: TransformSpec) -> np.ndarray:
+    """translate @ rotate[-1] @ ... @ rotate[0] @ scale. # [4, 4] float64"""
+    m = np.diag([*tr.scale, 1.0])
+    for axis, angle in tr.rotate:
+        r = np.eye(4)
+        r[:3, :3] = _rotation(axis, angle)
+        m = r @ m
+    m[:3, 3] += np.asarray(tr.translate)
+    return m
+
+
+@dataclass
+class MaterialEntry:
+    """What the integrator needs about the material of one shape (all RGB as tuples)."""
+
+    shape_id: str
+    route: int  # ROUTE_*
+    roughness: float  # roughness buffer value (perceptual)
+    f0_const: tuple  # F0 = f0_const + f0_tex_weight * texture
+    f0_tex_weight: float
+    principled: bool  # needs the recomputed diffuse lobe (ROUTE_SPLIT)
+    metallic: float
+    base_color: tuple  # used when texture is None
+    texture: object | None  # mi.Texture (same object the BSDF uses) or None
+
+
+def conductor_f0(m: MaterialSpec) -> tuple:
+    """Reflectance at normal incidence times specular_reflectance (perfect mirror: F = 1)."""
+    if m.eta is None:
+        base = np.ones(3)
+    else:
+        eta, k = np.asarray(m.eta), np.asarray(m.k)
+        base = ((eta - 1) ** 2 + k**2) / ((eta + 1) ** 2 + k**2)
+    return tuple(float(x) for x in base * np.asarray(m.specular_reflectance))
+
+
+def route_of(m: MaterialSpec) -> int:
+    if m.type == "diffuse":
+        return ROUTE_DIFFUSE
+    if m.type == "conductor":
+        return ROUTE_SPECULAR
+    # principled: metallic = 1 -> Mitsuba's diffuse weight (1 - metallic) is 0;
+    # specular = 0 and metallic = 0 -> eta = 1, dielectric Fresnel 0, no specular lobe.
+    if m.metallic == 1.0:
+        return ROUTE_SPECULAR
+    if m.metallic == 0.0 and m.specular == 0.0:
+        return ROUTE_DIFFUSE
+    return ROUTE_SPLIT
+
+
+def _rgb(c) -> dict:
+    return {"type": "rgb", "value": [float(x) for x in c]}
+
+
+def bsdf_dict(m: MaterialSpec, texture) -> dict:
+    color = texture if texture is not None else _rgb(m.base_color)
+    if m.type == "diffuse":
+        return {"type": "diffuse", "reflectance": color}
+    if m.type == "principled":
+        return {"type": "principled", "base_color": color, "roughness": m.roughness,
+                "metallic": m.metallic, "specular": m.specular}
+    d: dict = {"specular_reflectance": _rgb(m.specular_reflectance)}
+    if m.eta is None:
+        d["material"] = "none"
+    else:
+        d["eta"], d["k"] = _rgb(m.eta), _rgb(m.k)
+    if m.roughness == 0.0:
+        d["type"] = "conductor"
+    else:
+        d.update(type="roughconductor", distribution="ggx", alpha=m.roughness**2)
+    return d
+
+
+def material_entry(obj: ObjectSpec, texture) -> MaterialEntry:
+    m = obj.material
+    route = route_of(m)
+    base = tuple(m.base_color)
+    if m.type == "diffuse":
+        rough, f0, w = 1.0, (0.0, 0.0, 0.0), 0.0
+    elif m.type == "conductor":
+        rough, f0, w = m.roughness, conductor_f0(m), 0.0
+    else:
+        rough = m.roughness
+        diel = (1 - m.metallic) * 0.08 * m.specular
+        if texture is None:
+            f0, w = tuple(diel + m.metallic * c for c in base), 0.0
+        else:
+            f0, w = (diel, diel, diel), m.metallic
+    return MaterialEntry(obj.name, route, rough, f0, w, route == ROUTE_SPLIT, m.metallic, base,
+                         texture if m.type != "conductor" else None)
+
+
+@dataclass
+class BuiltScene:
+    scene_dict: dict
+    materials: dict  # shape id -> MaterialEntry
+
+
+def build_scene_dict(spec: SynthSpec) -> BuiltScene:
+    """The Mitsuba scene dict of ``spec`` and its material table. Textures are generated once per name."""
+    mi = mitsuba()
+    textures = {}
+    for name, tspec in spec.textures.items():
+        texels = make_texture(tspec)
+        textures[name] = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(texels), "raw": True,
+                                       "filter_type": "bilinear", "wrap_mode": "repeat"})
+    d: dict = {"type": "scene"}
+    materials = {}
+    for obj in spec.objects:
+        tex = textures[obj.material.texture] if obj.material.texture else None
+        shape = {"type": obj.shape, "to_world": mi.ScalarTransform4f(to_world_matrix(obj.transform)),
+                 "bsdf": bsdf_dict(obj.material, tex)}
+        if obj.emitter is not None:
+            shape["emitter"] = {"type": "area", "radiance": _rgb(obj.emitter)}
+        d[obj.name] = shape
+        materials[obj.name] = material_entry(obj, tex)
+    return BuiltScene(d, materials)
+
+
+def load_scene(spec: SynthSpec):
+    """(mi.Scene, material table)."""
+    mi = mitsuba()
+    built = build_scene_dict(spec)
+    try:
+        scene = mi.load_dict(built.scene_dict, optimize=False)  # keep one shape per object (ids)
+    except Exception as e:  # Mitsuba raises RuntimeError with its own text
+        raise ValueError(f"synth: Mitsuba could not build the scene: {e}") from None
+    return scene, built.materials
