@@ -6,6 +6,7 @@
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/init.smk"
+include: "workflow/rules/reconstruct.smk"
 include: "workflow/rules/benchmark.smk"
 
 

@@ -19,7 +19,10 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 SCHEMAS = ROOT / "workflow" / "schemas"
 # section -> schema file validating it (when both exist)
-SECTION_SCHEMAS = {"synth": "synth.schema.yaml", "init": "init.schema.yaml"}
+SECTION_SCHEMAS = {
+    "synth": "synth.schema.yaml", "init": "init.schema.yaml",
+    "reconstruct": "reconstruct.schema.yaml", "render": "render.schema.yaml",
+}
 
 
 class ConfigError(ValueError):

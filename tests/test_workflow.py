@@ -33,7 +33,8 @@ def test_bad_config_value_names_key(tmp_path):
 def test_dry_run_plans_synth(tmp_path):
     proc = snakemake(tmp_path, "-n", "--config", "scene=demo")
     assert proc.returncode == 0, proc.stderr
-    assert "synth" in proc.stdout and "init" in proc.stdout
+    for rule in ("synth", "init", "reconstruct", "render", "evaluate"):
+        assert rule in proc.stdout, rule
 
 
 def test_lint():
@@ -59,6 +60,13 @@ def test_tiny_run_then_cached(tmp_path):
     from models.gaussians import read_ply
 
     assert len(read_ply(results / "demo" / "init" / "points.ply")) > 10
+    import json
+
+    metrics = json.loads((results / "demo" / "metrics.json").read_text())["mean"]
+    assert metrics["psnr_diffuse"] > 15  # a trained (if tiny) scene, not an empty one
+    assert (results / "demo" / "renders" / "test" / "png").is_dir()
+    for stage in ("synth", "init", "reconstruct", "render", "evaluate"):
+        assert (results / "demo" / "logs" / f"{stage}.log").is_file(), stage
     second = snakemake(tmp_path, *args)
     assert second.returncode == 0, second.stderr
     assert "Nothing to be done" in second.stdout + second.stderr

@@ -48,5 +48,6 @@ def scene_targets(scenes):
     targets = []
     for scene in scenes:
         cfg = scene_config(scene)
-        targets.append(f"{RESULTS}/{scene}/init/points.ply")
+        targets.append(f"{RESULTS}/{scene}/renders")
+        targets.append(f"{RESULTS}/{scene}/metrics.json")
     return targets
