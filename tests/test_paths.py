@@ -99,3 +99,28 @@ def test_roughness_gradient_scaling_keeps_forward():
         grads.append(g.diffuse.grad[1].clone())
     assert torch.equal(values[0], values[1])
     assert torch.allclose(grads[1], grads[0] * 0.5**3, rtol=1e-10)
+
+
+@pytest.mark.parametrize("roughness", [0.0, 1.0])
+@pytest.mark.parametrize("f0", [0.0, 1.0])
+@pytest.mark.parametrize("log_scale", [math.log(1e-6), math.log(1e3), math.log(0.1)])
+def test_extremes_finite_values_and_gradients(roughness, f0, log_scale):
+    """Grazing views included: rays at 89.4 degrees to the mirror normal; opacity ~1 on the mirror."""
+    g = scene(mirror_roughness=roughness, mirror_f0=f0, dtype=torch.float32)
+    g.log_scales[1] = log_scale
+    g.opacity_logits[1] = 12.0  # opacity 0.999994
+    g.requires_grad_(True)
+    o, d = camera_rays(10, dtype=torch.float32)
+    grazing_o = torch.tensor([[-3.0, 0.0, 0.03]]).repeat(8, 1)
+    grazing_d = torch.nn.functional.normalize(torch.tensor([[1.0, 0.05 * i, -0.01] for i in range(8)]), dim=-1)
+    o, d = torch.cat([o, grazing_o]), torch.cat([d, grazing_d])
+    out = trace_paths(Tracer(TracerConfig(num_threads=2)).trace, o, d, g, PathConfig(max_path_length=3),
+                      torch.Generator().manual_seed(4))
+    loss = out.final.sum() + out.primary.depth.sum() + out.primary.normal.sum()
+    loss.backward()
+    assert torch.isfinite(out.final).all() and torch.isfinite(out.primary.depth).all()
+    # energy: each reflection segment returns at most the brightest diffuse value (throughput <= 1 for F0 <= 1)
+    for bounce in out.bounces:
+        assert bounce.max() <= g.diffuse.max() + 1e-5
+    for name, p in g.params().items():
+        assert torch.isfinite(p.grad).all(), name
