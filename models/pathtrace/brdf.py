@@ -31,9 +31,17 @@ MIN_ROUGHNESS = 0.01
 SMITH_MODELS = ("height_correlated", "separable", "schlick")
 DEFAULT_SMITH = "height_correlated"
 
-# Smallest argument given to sqrt / denominators; keeps values and gradients finite in
-# float32 (sqrt(1e-30) = 1e-15, gradient 5e14 * 0 upstream = 0, never inf * 0).
-_TINY = 1e-30
+# Guards: every sqrt / rsqrt / division takes an argument replaced (by `torch.where`, not
+# `clamp`, so no gradient reaches the replaced entries) when it is at or below a floor.
+# The floors keep values and gradients finite in float32 as well (1 / 1e-12^2 = 1e24).
+_SQRT_FLOOR = 1e-30   # sqrt(x) := 0 for x <= floor
+_NORM2_FLOOR = 1e-20  # normalize(v) := 0 for |v|^2 <= floor
+_DEN_FLOOR = 1e-12    # denominators that vanish only at degenerate configurations
+
+
+def positive(x: torch.Tensor, floor: float = _DEN_FLOOR) -> torch.Tensor:
+    """x where x > floor, else floor (no gradient through the replaced entries)."""
+    return torch.where(x > floor, x, torch.full_like(x, floor))
 
 
 def check_smith(smith: str) -> None:
@@ -54,13 +62,17 @@ def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def safe_normalize(v: torch.Tensor) -> torch.Tensor:
-    """v / |v| with a zero vector mapped to (a finite) zero. [..., 3] -> [..., 3]."""
-    return v * torch.rsqrt(dot(v, v).clamp_min(_TINY))[..., None]
+    """v / |v|; (near-)zero vectors map to zero with zero gradient. [..., 3] -> [..., 3]."""
+    dd = dot(v, v)
+    ok = dd > _NORM2_FLOOR
+    inv = torch.rsqrt(torch.where(ok, dd, torch.ones_like(dd)))
+    return torch.where(ok[..., None], v * inv[..., None], torch.zeros_like(v))
 
 
 def safe_sqrt(x: torch.Tensor) -> torch.Tensor:
-    """sqrt(max(x, tiny)): finite value and gradient for x <= 0."""
-    return torch.sqrt(x.clamp_min(_TINY))
+    """sqrt(x) for x > 1e-30, else 0; finite value and gradient everywhere."""
+    ok = x > _SQRT_FLOOR
+    return torch.where(ok, torch.sqrt(torch.where(ok, x, torch.ones_like(x))), torch.zeros_like(x))
 
 
 def reflect(d: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
@@ -91,7 +103,8 @@ def ggx_d(n_dot_h: torch.Tensor, alpha: torch.Tensor,
         sin2 = sin2_theta_h.clamp(0.0, 1.0)
     a2 = alpha * alpha
     t = sin2 + a2 * c * c
-    d = a2 / (math.pi * (t * t).clamp_min(_TINY))
+    t = positive(t, 1e-20)  # t >= alpha^2 >= 1e-8 unless h is degenerate (zero)
+    d = a2 / (math.pi * t * t)
     return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
 
 
@@ -114,7 +127,7 @@ def smith_g1(n_dot_v: torch.Tensor, alpha: torch.Tensor, smith: str = DEFAULT_SM
         k = 0.5 * alpha
         g = c / (c * (1.0 - k) + k)
     else:
-        g = 2.0 * c / (c + _smith_a(c, alpha)).clamp_min(_TINY)
+        g = 2.0 * c / (c + _smith_a(c, alpha))  # a >= alpha >= 1e-4
     return torch.where(n_dot_v > 0, g, torch.zeros_like(g))
 
 
@@ -136,8 +149,8 @@ def smith_visibility(n_dot_o: torch.Tensor, n_dot_i: torch.Tensor, alpha: torch.
         return 0.25 / ((co * (1.0 - k) + k) * (ci * (1.0 - k) + k))
     ao, ai = _smith_a(co, alpha), _smith_a(ci, alpha)
     if smith == "height_correlated":
-        return 0.5 / (ci * ao + co * ai).clamp_min(_TINY)
-    return 1.0 / ((co + ao) * (ci + ai)).clamp_min(_TINY)
+        return 0.5 / positive(ci * ao + co * ai)  # 0 only if c_o = c_i = 0 (masked)
+    return 1.0 / ((co + ao) * (ci + ai))
 
 
 def smith_g(n_dot_o: torch.Tensor, n_dot_i: torch.Tensor, alpha: torch.Tensor,

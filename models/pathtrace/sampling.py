@@ -36,6 +36,7 @@ from models.pathtrace.brdf import (
     dot,
     fresnel_schlick,
     ggx_d,
+    positive,
     roughness_to_alpha,
     safe_normalize,
     safe_sqrt,
@@ -81,7 +82,7 @@ def _check_inputs(n, wo, roughness, f0, u1, u2, smith):
     check_smith(smith)
 
 
-def _finish(n, t, b, wo_l, h_l, alpha, f0, pdf, factor, extra_valid):
+def _finish(n, t, b, wo_l, h_l, f0, pdf, factor, extra_valid):
     """Shared tail: reflect wo about h in the local frame, weight = F(wo.h) * factor."""
     wo_h = dot(wo_l, h_l)
     wi_l = 2.0 * wo_h[..., None] * h_l - wo_l
@@ -114,9 +115,10 @@ def sample_vndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: 
     vh = safe_normalize(torch.stack([alpha * wo_l[..., 0], alpha * wo_l[..., 1],
                                      co.clamp_min(0.0)], dim=-1))
     lensq = vh[..., 0] ** 2 + vh[..., 1] ** 2
-    inv_len = torch.rsqrt(lensq.clamp_min(1e-30))
+    side = lensq > 1e-20  # else normal incidence: any tangent will do
+    inv_len = torch.rsqrt(torch.where(side, lensq, torch.ones_like(lensq)))
     zero = torch.zeros_like(lensq)
-    t1 = torch.where((lensq > 0)[..., None],
+    t1 = torch.where(side[..., None],
                      torch.stack([-vh[..., 1] * inv_len, vh[..., 0] * inv_len, zero], dim=-1),
                      torch.stack([torch.ones_like(lensq), zero, zero], dim=-1))
     t2 = torch.linalg.cross(vh, t1)
@@ -135,10 +137,11 @@ def sample_vndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: 
     coc = co.clamp(0.0, 1.0)
     pdf = ggx_d(h_l[..., 2], alpha, h_l[..., 0] ** 2 + h_l[..., 1] ** 2) / (2.0 * (coc + ao))
 
-    def factor(ci):  # G2 / G1(wo) = 4 V c_o c_i (c_o + a_o) / (2 c_o)
-        return 2.0 * smith_visibility(coc, ci, alpha, smith) * ci * (coc + ao)
+    def factor(ci):  # G2 / G1(wo) = 4 V c_o c_i (c_o + a_o) / (2 c_o), <= 1 for all three
+        # Smith forms (Schlick G1 <= exact G1); the clamp only removes float32 rounding.
+        return (2.0 * smith_visibility(coc, ci, alpha, smith) * ci * (coc + ao)).clamp(max=1.0)
 
-    return _finish(n, t, b, wo_l, h_l, alpha, f0, pdf, factor, h_l[..., 2] > 0)
+    return _finish(n, t, b, wo_l, h_l, f0, pdf, factor, h_l[..., 2] > 0)
 
 
 def sample_ndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: torch.Tensor,
@@ -163,12 +166,12 @@ def sample_ndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: t
     phi = 2.0 * math.pi * u2
     h_l = torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], dim=-1)
     wo_h = dot(wo_l, h_l)
-    pdf = ggx_d(cos_h, alpha, sin2) * cos_h / (4.0 * wo_h.abs().clamp_min(1e-30))
+    pdf = ggx_d(cos_h, alpha, sin2) * cos_h / (4.0 * positive(wo_h.abs()))
 
     def factor(ci):  # 4 V c_i (wo.h) / (n.h)
-        return 4.0 * smith_visibility(co, ci, alpha, smith) * ci * wo_h.clamp_min(0.0) / cos_h
+        return 4.0 * smith_visibility(co, ci, alpha, smith) * ci * wo_h.clamp_min(0.0) / positive(cos_h)
 
-    return _finish(n, t, b, wo_l, h_l, alpha, f0, pdf, factor, (wo_h > 0) & (cos2 > 0))
+    return _finish(n, t, b, wo_l, h_l, f0, pdf, factor, (wo_h > 0) & (cos2 > 0))
 
 
 def sample_specular(n, wo, roughness, f0, u1, u2, method: str = "vndf",
@@ -212,7 +215,7 @@ def pdf_ndf(n: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor, roughness: torc
     one-to-one; h is the upper-hemisphere half vector, back-facing ones included).
     n, wo, wi: [..., 3]; roughness: [...] -> [...]."""
     alpha, co, wo_h, nh, d = _half_vector_terms(n, wo, wi, roughness)
-    p = d * nh / (4.0 * wo_h.abs().clamp_min(1e-30))
+    p = d * nh / (4.0 * positive(wo_h.abs()))
     return torch.where((co > 0) & (nh > 0), p, torch.zeros_like(p))
 
 
@@ -277,7 +280,7 @@ def format_variance_table(result: dict) -> str:
         lines.append(
             f"{result['roughness'][i]:6.2f} {result['angle_deg'][i]:7.1f} "
             f"{result['albedo_vndf'][i]:8.4f} {result['albedo_ndf'][i]:8.4f} "
-            f"{result['var_vndf'][i]:10.3e} {result['var_ndf'][i]:10.3e} {result['ratio'][i]:9.2f} "
+            f"{result['var_vndf'][i]:10.3e} {result['var_ndf'][i]:10.3e} {result['ratio'][i]:9.3g} "
             f"{result['invalid_vndf'][i]:8.3f} {result['invalid_ndf'][i]:8.3f}")
     return "\n".join(lines)
 
