@@ -67,7 +67,10 @@ def load_config(scene: str | None = None, presets: Iterable[str] = (), overrides
     if scene not in scenes:
         raise ConfigError(f"unknown scene {scene!r}; known scenes: {', '.join(scenes)}")
     config = deep_merge(config, read_yaml(CONFIGS / "scenes" / f"{scene}.yaml"))
-    preset_list = list(presets) + _as_list(overrides.pop("presets", [])) + _as_list(overrides.pop("preset", []))
+    # presets named by the scene file come first, then those of the caller / command line
+    preset_list = _as_list(config.get("presets", [])) + list(presets)
+    preset_list += _as_list(overrides.pop("presets", [])) + _as_list(overrides.pop("preset", []))
+    preset_list = list(dict.fromkeys(preset_list))
     for preset in preset_list:
         path = CONFIGS / "presets" / f"{preset}.yaml"
         if not path.is_file():

@@ -37,8 +37,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = p.parse_args(argv)
 
+    import time
+
     from .render import render_capture
 
+    t0 = time.perf_counter()
     try:
         edits: list = []
         if args.scene:
@@ -70,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     extra = capture.meta.extra
+    from stages.provenance import write_stage_json
+
+    write_stage_json(args.out, "synth", {"synth": synth_cfg, "edits": edits}, time.perf_counter() - t0,
+                     extra={"seconds_per_view": extra["seconds_per_view"], "spp": extra["spp"]})
     print(f"wrote {len(capture.views)} views to {args.out} ({extra['spp']} spp, "
           f"{extra['mean_seconds_per_view']} s/view, {extra['seconds_total']} s total)")
     return 0

@@ -16,7 +16,7 @@ VARIANT = "llvm_ad_rgb"
 # Layer routing of a material at the first vertex (see integrator.py).
 ROUTE_DIFFUSE = 0  # every first-vertex contribution is diffuse; specular exactly 0
 ROUTE_SPECULAR = 1  # every first-vertex contribution is specular; diffuse exactly 0
-ROUTE_SPLIT = 2  # principled with both lobes: diffuse lobe recomputed, specular = full - diffuse
+ROUTE_SPLIT = 2  # principled with both lobes: each lobe evaluated separately (lobes.py)
 
 
 def mitsuba():
@@ -58,6 +58,7 @@ class MaterialEntry:
     f0_tex_weight: float
     principled: bool  # needs the recomputed diffuse lobe (ROUTE_SPLIT)
     metallic: float
+    specular: float  # principled 'specular' (dielectric F0 = 0.08 specular)
     base_color: tuple  # used when texture is None
     texture: object | None  # mi.Texture (same object the BSDF uses) or None
 
@@ -124,7 +125,7 @@ def material_entry(obj: ObjectSpec, texture) -> MaterialEntry:
             f0, w = tuple(diel + m.metallic * c for c in base), 0.0
         else:
             f0, w = (diel, diel, diel), m.metallic
-    return MaterialEntry(obj.name, route, rough, f0, w, route == ROUTE_SPLIT, m.metallic, base,
+    return MaterialEntry(obj.name, route, rough, f0, w, route == ROUTE_SPLIT, m.metallic, m.specular, base,
                          texture if m.type != "conductor" else None)
 
 

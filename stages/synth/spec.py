@@ -90,7 +90,7 @@ class SynthSpec:
     textures: dict[str, TextureSpec] = field(default_factory=dict)
     seed: int = 0
     max_depth: int = 5  # scattering vertices per path (first hit included)
-    spp_chunk: int = 16  # samples per pixel traced per wavefront pass (memory bound)
+    spp_chunk: int = 64  # samples per pixel traced per wavefront pass (memory bound)
 
     def object(self, name: str) -> ObjectSpec:
         for obj in self.objects:
@@ -196,6 +196,9 @@ def parse_material(d: Any, where: str, textures: dict[str, TextureSpec]) -> Mate
             kw[key] = _num(d[key], f"{where}.{key}", 0.0, 1.0)
     if mtype == "conductor":
         kw.setdefault("roughness", 0.0)
+    if mtype == "principled" and kw.get("metallic", 0.0) > 0 and kw.get("specular", 0.5) == 0:
+        raise ValueError(f"{where}: a principled material with metallic > 0 needs specular > 0 "
+                         f"(Mitsuba drops its whole specular lobe, metal included, when specular = 0)")
     if "specular_reflectance" in d:
         kw["specular_reflectance"] = _vec(d["specular_reflectance"], f"{where}.specular_reflectance", 3, 0.0, 1.0)
     if ("eta" in d) != ("k" in d):
@@ -317,5 +320,5 @@ def parse_spec(cfg: Any, where: str = "synth") -> SynthSpec:
         textures=textures,
         seed=_int(cfg.get("seed", 0), f"{where}.seed", 0),
         max_depth=_int(cfg.get("max_depth", 5), f"{where}.max_depth", 1),
-        spp_chunk=_int(cfg.get("spp_chunk", 16), f"{where}.spp_chunk", 1),
+        spp_chunk=_int(cfg.get("spp_chunk", 64), f"{where}.spp_chunk", 1),
     )
