@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -11,7 +10,8 @@ from pathlib import Path
 
 from models.capture import CaptureError, read_capture
 from models.gaussians import write_ply
-from stages.config import ConfigError, load_config
+from stages.cli import add_config_args, load_section
+from stages.config import ConfigError
 from stages.init.dense import InitConfig, dense_init
 from stages.provenance import write_stage_json
 
@@ -25,21 +25,13 @@ def main(argv: list[str] | None = None) -> int:
         "diffuse buffer, voxelise, one Gaussian per voxel with >= min_samples samples. Writes <out>/points.ply "
         "(3DGS field names + extra fields) and <out>/stage.json.",
     )
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--config-json", help="the 'init' config section as JSON (what Snakemake passes)")
-    src.add_argument("--scene", help="load the init section of configs/scenes/<scene>.yaml (+ defaults)")
-    p.add_argument("--preset", action="append", default=[], help="preset(s) applied with --scene")
+    add_config_args(p, "init")
     p.add_argument("--capture", required=True, type=Path, help="capture folder (transforms.json + images/)")
     p.add_argument("--out", required=True, type=Path, help="output folder; gets points.ply")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
-        if args.config_json:
-            section = json.loads(args.config_json)
-        elif args.scene:
-            section = load_config(args.scene, presets=args.preset).get("init", {})
-        else:
-            section = {}
+        section = load_section(args, "init")
         config = InitConfig.from_dict(section)
         start = time.perf_counter()
         capture = read_capture(args.capture, layers=["depth", "diffuse", "mask"])

@@ -12,7 +12,8 @@ from pathlib import Path
 from models.capture import CaptureError, read_capture
 from models.gaussians import read_ply, write_ply
 from models.tracer import Tracer, TracerConfig
-from stages.config import ConfigError, load_config
+from stages.cli import add_config_args, load_section
+from stages.config import ConfigError
 from stages.provenance import write_stage_json
 from stages.reconstruct.config import ReconstructConfig
 from stages.reconstruct.trainer import Trainer, train
@@ -32,10 +33,7 @@ def main(argv: list[str] | None = None) -> int:
         "after warm-up (paper Eq. 4-7). Writes <out>/gaussians.ply, <out>/checkpoints/last.pt (exact resume), "
         "<out>/train_log.jsonl (metrics, JSON lines) and <out>/stage.json.",
     )
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--config-json", help="the 'reconstruct' config section as JSON (what Snakemake passes)")
-    src.add_argument("--scene", help="load the reconstruct section of configs/scenes/<scene>.yaml (+ defaults)")
-    p.add_argument("--preset", action="append", default=[], help="preset(s) applied with --scene")
+    add_config_args(p, "reconstruct")
     p.add_argument("--capture", required=True, type=Path, help="capture folder")
     p.add_argument("--init", required=True, type=Path, help="initial Gaussians (init/points.ply)")
     p.add_argument("--out", required=True, type=Path, help="output folder (model/)")
@@ -45,12 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
-        if args.config_json:
-            section = json.loads(args.config_json)
-        elif args.scene:
-            section = load_config(args.scene, presets=args.preset).get("reconstruct", {})
-        else:
-            section = {}
+        section = load_section(args, "reconstruct")
         config = ReconstructConfig.from_dict(section)
         capture = read_capture(args.capture)
         init = read_ply(args.init)

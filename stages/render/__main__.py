@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -15,7 +14,8 @@ from tqdm import tqdm
 from models.capture import CaptureError, read_capture
 from models.gaussians import read_ply
 from models.tracer import Tracer, TracerConfig
-from stages.config import ConfigError, load_config
+from stages.cli import add_config_args, load_section
+from stages.config import ConfigError
 from stages.provenance import write_stage_json
 from stages.render.render import RenderConfig, camera_path, render_view, write_layers
 
@@ -29,10 +29,7 @@ def main(argv: list[str] | None = None) -> int:
         "samples per pixel, specular denoised with Open Image Denoise. Writes <out>/test/<view>.exr (+ png/) for "
         "the capture's test views and <out>/path/ for a novel camera path (+ video when possible).",
     )
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--config-json", help="the 'render' config section as JSON (what Snakemake passes)")
-    src.add_argument("--scene", help="load the render section of configs/scenes/<scene>.yaml (+ defaults)")
-    p.add_argument("--preset", action="append", default=[], help="preset(s) applied with --scene")
+    add_config_args(p, "render")
     p.add_argument("--model", required=True, type=Path, help="trained gaussians.ply")
     p.add_argument("--capture", required=True, type=Path, help="capture (its test cameras are rendered)")
     p.add_argument("--out", required=True, type=Path, help="output folder (renders/)")
@@ -41,12 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
-        if args.config_json:
-            section = json.loads(args.config_json)
-        elif args.scene:
-            section = load_config(args.scene, presets=args.preset).get("render", {})
-        else:
-            section = {}
+        section = load_section(args, "render")
         config = RenderConfig.from_dict(section)
         capture = read_capture(args.capture, layers=["mask"])
         gaussians = read_ply(args.model)
