@@ -12,7 +12,7 @@ from pathlib import Path
 from models.capture import CaptureError, read_capture
 from models.gaussians import read_ply, write_ply
 from models.tracer import Tracer, TracerConfig
-from stages.cli import add_config_args, load_section
+from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
 from stages.provenance import write_stage_json
 from stages.reconstruct.config import ReconstructConfig
@@ -42,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    single_threaded_torch()
     try:
         section = load_section(args, "reconstruct")
         config = ReconstructConfig.from_dict(section)

@@ -14,7 +14,7 @@ from tqdm import tqdm
 from models.capture import CaptureError, read_capture
 from models.gaussians import read_ply
 from models.tracer import Tracer, TracerConfig
-from stages.cli import add_config_args, load_section
+from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
 from stages.provenance import write_stage_json
 from stages.render.render import RenderConfig, camera_path, render_view, write_layers
@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2, help="CPU tracer threads")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    single_threaded_torch()
     try:
         section = load_section(args, "render")
         config = RenderConfig.from_dict(section)
