@@ -20,10 +20,10 @@ def random_gaussians(n: int, generator: torch.Generator, extent: float = 1.0, sc
 
 
 def room_gaussians(n: int, generator: torch.Generator, half_size: float = 1.0,
-                   dtype=torch.float32) -> Gaussians:
+                   opacity_logit_mean: float = -1.0, dtype=torch.float32) -> Gaussians:
     """n flat Gaussians on the six inner faces of a cube [-half_size, half_size]^3 (a room),
     plus a quarter of them in a few floating blobs, sized so that a ray from inside crosses
-    tens of Gaussians before the wall becomes opaque."""
+    tens of Gaussians before the wall becomes opaque. Opacity logits ~ N(opacity_logit_mean, 1)."""
     g = generator
     n_wall = n - n // 4
     face = torch.randint(0, 6, (n_wall,), generator=g)
@@ -46,8 +46,11 @@ def room_gaussians(n: int, generator: torch.Generator, half_size: float = 1.0,
     means_blob = centers[which] + 0.15 * half_size * torch.randn(n_blob, 3, generator=g, dtype=torch.float64)
     ls_blob = math.log(0.6 * spacing) + 0.3 * torch.randn(n_blob, 3, generator=g, dtype=torch.float64)
     q_blob = torch.randn(n_blob, 4, generator=g, dtype=torch.float64)
-    return _with_features(n, g, torch.cat([means_wall, means_blob]), torch.cat([q_wall, q_blob]),
-                          torch.cat([ls_wall, ls_blob]), dtype)
+    out = _with_features(n, g, torch.cat([means_wall, means_blob]), torch.cat([q_wall, q_blob]),
+                         torch.cat([ls_wall, ls_blob]), dtype)
+    # semi-transparent, as after dense initialisation (opacity ~0.1-0.5): tens of blended hits
+    out.opacity_logits = (opacity_logit_mean + torch.randn(n, generator=g, dtype=torch.float64)).to(dtype)
+    return out
 
 
 def _with_features(n, g, means, quats, log_scales, dtype) -> Gaussians:

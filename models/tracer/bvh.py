@@ -13,51 +13,63 @@ import time
 import torch
 import warp as wp
 
-from models.tracer._torch_impl import cutoff_radius
 from models.tracer.interop import to_warp
-
-
-def world_bounds(means: torch.Tensor, l2w: torch.Tensor, cutoff: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """AABBs of the oriented boxes. means [N, 3], l2w = R S [N, 3, 3], cutoff [N] -> lowers, uppers [N, 3]."""
-    half = cutoff[:, None] * l2w.abs().sum(-1)
-    return means - half, means + half
+from models.tracer.launch import ray_chunks
+from models.tracer.prepare import prepare_kernel
+from models.tracer.structs import vec16
 
 
 class GaussianBvh:
-    """Holds the wp.Bvh and the bound arrays it references (refit reads them in place)."""
+    """Holds the wp.Bvh, the bound arrays it references (refit reads them in place) and
+    the packed per-Gaussian records [N] (see structs.vec16) of the last update."""
 
-    def __init__(self, device: str):
+    def __init__(self, device: str, use_wp_bvh: bool = True):
         self.device = device
+        self.use_wp_bvh = use_wp_bvh  # False: only bounds + packed records (ordered traversal)
         self.bvh: wp.Bvh | None = None
         self.lowers: wp.array | None = None
         self.uppers: wp.array | None = None
+        self.packed: wp.array | None = None
         self.count = -1
         self.last_update_s = 0.0   # wall time of the last update
         self.last_was_rebuild = False
 
-    def update(self, means: torch.Tensor, quats_unit_rot: torch.Tensor, scales: torch.Tensor,
-               opacities: torch.Tensor, kernel_p: int, alpha_min: float, rebuild: bool = False) -> torch.Tensor:
-        """Recompute bounds; refit or rebuild. rot [N,3,3], scales [N,3]. Returns cutoff [N]."""
+    def update(self, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
+               opacity_logits: torch.Tensor, kernel_p: int, alpha_min: float, rebuild: bool = False,
+               run=None, n_chunks: int = 1) -> None:
+        """Raw parameters [N,3], [N,4], [N,3], [N] -> packed records, bounds; refit or rebuild.
+        run(jobs) executes the chunk launches (e.g. concurrently); default: in turn."""
+        run = run or (lambda jobs: [job() for job in jobs])
         start = time.perf_counter()
-        with torch.no_grad():
-            cutoff = cutoff_radius(opacities.float(), kernel_p, alpha_min)
-            l2w = quats_unit_rot.float() * scales.float()[:, None, :]
-            lowers, uppers = world_bounds(means.float(), l2w, cutoff)
         n = means.shape[0]
-        self.last_was_rebuild = rebuild or self.bvh is None or n != self.count
+        self.last_was_rebuild = rebuild or self.packed is None or n != self.count
         if n == 0:
             self.bvh, self.count = None, 0
+            self.packed = wp.zeros(0, dtype=vec16, device=self.device)
+            self.last_update_s = time.perf_counter() - start
+            return
+        if self.last_was_rebuild:
+            self.lowers = wp.empty(n, dtype=wp.vec3, device=self.device)
+            self.uppers = wp.empty(n, dtype=wp.vec3, device=self.device)
+            self.packed = wp.empty(n, dtype=vec16, device=self.device)
+        raw = [to_warp(means, wp.vec3, self.device), to_warp(quats, wp.vec4, self.device),
+               to_warp(log_scales, wp.vec3, self.device), to_warp(opacity_logits, float, self.device)]
+        outs = [self.packed, self.lowers, self.uppers]
+
+        def prepare(a: int, b: int) -> None:
+            wp.launch(prepare_kernel, dim=b - a, device=self.device,
+                      inputs=[*(x[a:b] for x in raw), kernel_p, alpha_min, *(x[a:b] for x in outs)])
+
+        # CPU: split over the tracer's threads (a launch uses one core); no atomics involved
+        run([(lambda a=a, b=b: prepare(a, b)) for a, b in ray_chunks(n, n_chunks)])
+        if not self.use_wp_bvh:
+            self.bvh, self.count = None, n
         elif self.last_was_rebuild:
-            self.lowers = to_warp(lowers, wp.vec3, self.device)
-            self.uppers = to_warp(uppers, wp.vec3, self.device)
             self.bvh = wp.Bvh(self.lowers, self.uppers)
             self.count = n
         else:
-            wp.copy(self.lowers, to_warp(lowers, wp.vec3, self.device))
-            wp.copy(self.uppers, to_warp(uppers, wp.vec3, self.device))
             self.bvh.refit()
         self.last_update_s = time.perf_counter() - start
-        return cutoff
 
     @property
     def id(self) -> int:

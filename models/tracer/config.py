@@ -31,6 +31,14 @@ class TracerConfig:
     world_aabb_only: bool = False
     # Ablation: rebuild the BVH on every update() instead of refitting it.
     always_rebuild: bool = False
+    # Stretch: own Morton-ordered BVH traversed front to back, stopping early once T < threshold
+    # (hit_count then counts hits found before stopping). Excludes repeated_kbuffer.
+    ordered_traversal: bool = False
+    # Gaussians per leaf of the ordered BVH.
+    ordered_leaf_size: int = 4
+    # Node-heap entries per ray for the ordered traversal; a ray that needs more falls back
+    # to the single traversal (same result, no early exit).
+    ordered_heap_size: int = 128
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel_p, int) or self.kernel_p < 1:
@@ -46,5 +54,11 @@ class TracerConfig:
                 f"need 1 <= replay_capacity <= max_replay_capacity, got "
                 f"{self.replay_capacity}, {self.max_replay_capacity}"
             )
+        if self.ordered_traversal and self.repeated_kbuffer:
+            raise ValueError("ordered_traversal and repeated_kbuffer are exclusive; choose one")
+        if self.ordered_heap_size < 2:
+            raise ValueError(f"ordered_heap_size must be >= 2, got {self.ordered_heap_size}")
+        if self.ordered_leaf_size < 1:
+            raise ValueError(f"ordered_leaf_size must be >= 1, got {self.ordered_leaf_size}")
         if self.num_threads < 1:
             raise ValueError(f"num_threads must be >= 1, got {self.num_threads}")

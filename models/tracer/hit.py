@@ -13,20 +13,23 @@ from models.tracer.structs import vec16
 
 
 @wp.func
+def safe_inverse(x: float) -> float:
+    """1/x, with |x| < 1e-30 mapped to +-1e30 (keeps the slab test free of NaN)."""
+    if wp.abs(x) < 1.0e-30:
+        return wp.sign(x) * 1.0e30
+    return 1.0 / x
+
+
+@wp.func
 def ray_box_overlap(o: wp.vec3, d: wp.vec3, s: float, t_min: float) -> int:
     """1 when the ray o + t d, t > t_min, meets the cube [-s, s]^3 (slab test)."""
-    t0 = float(-1.0e30)
-    t1 = float(1.0e30)
-    for c in range(3):
-        if wp.abs(d[c]) < 1.0e-30:
-            if wp.abs(o[c]) > s:
-                return 0
-        else:
-            inv = 1.0 / d[c]
-            ta = (-s - o[c]) * inv
-            tb = (s - o[c]) * inv
-            t0 = wp.max(t0, wp.min(ta, tb))
-            t1 = wp.min(t1, wp.max(ta, tb))
+    inv = wp.vec3(safe_inverse(d[0]), safe_inverse(d[1]), safe_inverse(d[2]))
+    ta = wp.cw_mul(wp.vec3(-s) - o, inv)
+    tb = wp.cw_mul(wp.vec3(s) - o, inv)
+    lo = wp.min(ta, tb)
+    hi = wp.max(ta, tb)
+    t0 = wp.max(wp.max(lo[0], lo[1]), lo[2])
+    t1 = wp.min(wp.min(hi[0], hi[1]), hi[2])
     if t0 <= t1 and t1 > t_min:
         return 1
     return 0

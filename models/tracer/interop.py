@@ -39,13 +39,3 @@ def to_torch(a: wp.array, device: torch.device) -> torch.Tensor:
     if torch_device_for(str(a.device)) is not None:
         return wp.to_torch(a, requires_grad=False).to(device)
     return torch.from_numpy(np.ascontiguousarray(a.numpy())).to(device)
-
-
-def empty_torch(shape, dtype, device: str) -> tuple[torch.Tensor | None, wp.array]:
-    """Allocate on the Warp device; returns (torch alias or None, warp array)."""
-    wdtype = {torch.float32: wp.float32, torch.int32: wp.int32}[dtype]
-    tdev = torch_device_for(device)
-    if tdev is not None:
-        t = torch.empty(shape, dtype=dtype, device=tdev)
-        return t, wp.from_torch(t, dtype=wdtype, requires_grad=False)
-    return None, wp.empty(shape, dtype=wdtype, device=device)

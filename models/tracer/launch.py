@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import warp as wp
 
+from models.tracer.ordered_bvh import OrderedBvh
 from models.tracer.structs import GaussianGrads, RayGrads, RayOutputs, Replay
 
 # RayOutputs field -> (Warp dtype, components)
@@ -30,6 +31,16 @@ def ray_chunks(n_rays: int, n_threads: int) -> list[tuple[int, int]]:
     n = max(1, min(n_threads, n_rays))
     bounds = [round(i * n_rays / n) for i in range(n + 1)]
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def thread_stripes(n_rays: int, n_threads: int, chunks_per_thread: int = 8) -> list[list[tuple[int, int]]]:
+    """Ray chunks dealt round-robin to threads (balances image regions of unequal cost).
+    One list per thread; each thread launches its chunks in turn with its own gradient buffers."""
+    if n_threads <= 1:
+        return [[(0, n_rays)]]
+    chunks = ray_chunks(n_rays, n_threads * chunks_per_thread)
+    stripes = [chunks[i::n_threads] for i in range(n_threads)]
+    return [s for s in stripes if s] or [[(0, n_rays)]]
 
 
 @dataclass
@@ -92,3 +103,35 @@ def run_chunks(pool: ThreadPoolExecutor | None, jobs: list) -> None:
         return
     for f in [pool.submit(job) for job in jobs]:
         f.result()
+
+
+def ray_grads_struct(views: dict[str, wp.array]) -> RayGrads:
+    s = RayGrads()
+    for k in RAY_GRAD_FIELDS:
+        setattr(s, k, views[k])
+    return s
+
+
+def empty_ordered(device: str) -> OrderedBvh:
+    """Placeholder ordered BVH for launches that do not use it (never read)."""
+    b = OrderedBvh()
+    b.node_lo = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.node_hi = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.order = wp.zeros(1, dtype=wp.int32, device=device)
+    b.lowers = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.uppers = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.n_leaves, b.leaf_size, b.count = 1, 1, 0
+    b.heap_keys = wp.zeros((1, 1), dtype=float, device=device)
+    b.heap_nodes = wp.zeros((1, 1), dtype=wp.int32, device=device)
+    return b
+
+
+def sum_grads(per_thread: list[dict[str, wp.array]]) -> dict[str, wp.array]:
+    """Sum per-thread gradient buffers into the first (CPU atomics are not safe across
+    concurrent launches). Only CPU launches are split over threads."""
+    total = per_thread[0]
+    for other in per_thread[1:]:
+        assert total["means"].device.is_cpu
+        for k in total:
+            wp.to_torch(total[k], requires_grad=False).add_(wp.to_torch(other[k], requires_grad=False))
+    return total

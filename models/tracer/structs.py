@@ -13,15 +13,12 @@ vec16 = wp.types.vector(length=16, dtype=wp.float32)
 class GaussianData:
     """Activated per-Gaussian values, N entries each."""
 
-    means: wp.array(dtype=wp.vec3)       # [N] world mean
-    w2l: wp.array(dtype=wp.mat33)        # [N] M = S^-1 R^T, x_local = M (x - mean)
-    opacity: wp.array(dtype=float)       # [N] sigmoid(logit)
-    cutoff: wp.array(dtype=float)        # [N] box half-size s in the local frame (0 = masked)
     diffuse: wp.array(dtype=wp.vec3)     # [N]
     normal: wp.array(dtype=wp.vec3)      # [N]
     roughness: wp.array(dtype=float)     # [N]
     f0: wp.array(dtype=wp.vec3)          # [N]
-    packed: wp.array(dtype=vec16)        # [N] the above geometry packed for traversal
+    # [N] geometry: mean, M = S^-1 R^T (x_local = M (x - mean)), opacity, cutoff s (0 = masked)
+    packed: wp.array(dtype=vec16)
 
 
 @wp.struct
@@ -36,6 +33,7 @@ class TraceParams:
     capacity: int             # replay slots per ray
     obb_test: int             # 1: slab test against the oriented box before evaluating
     repeated_kbuffer: int     # 1: 3DGRT-style re-traversal per round (ablation)
+    ordered: int              # 1: own BVH, front-to-back traversal with early termination (stretch)
 
 
 @wp.struct

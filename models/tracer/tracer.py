@@ -10,16 +10,17 @@ Rays may start anywhere (camera or reflection vertices); dirs need not be unit l
 
 from __future__ import annotations
 
-import time
+import logging
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import warp as wp
 
 import models.tracer.kernels as kernels
-from models.gaussians.activations import quats_to_rotmats
 from models.gaussians.scene import Gaussians
+from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
+from models.tracer.chain import chain_kernel
 from models.tracer.config import TracerConfig
 from models.tracer.interop import to_torch, to_warp
 from models.tracer.launch import (
@@ -27,20 +28,28 @@ from models.tracer.launch import (
     ReplayArrays,
     allocate_grads,
     allocate_outputs,
+    empty_ordered,
     grads_struct,
     outputs_view,
-    ray_chunks,
+    ray_grads_struct,
     ray_grads_view,
     run_chunks,
+    sum_grads,
+    thread_stripes,
 )
+from models.tracer.ordered_bvh import OrderedBvh, OrderedBvhBuilder
 from models.tracer.output import LAYERS, TraceOutput
-from models.tracer.structs import GaussianData, L1Loss, RayGrads, TraceParams, vec16
+from models.tracer.structs import GaussianData, L1Loss, TraceParams
 
-_GRAD_TO_INPUT = ["means", "w2l", "opacity", "diffuse", "normal", "roughness", "f0"]
+log = logging.getLogger(__name__)
 
 
 class Tracer:
-    """Gaussian ray tracer on one Warp device ("cpu" or "cuda[:i]")."""
+    """Gaussian ray tracer on one Warp device ("cpu" or "cuda[:i]").
+
+    Holds the BVH of the last update() and a CPU thread pool; not safe to call from several
+    Python threads at once. Each trace() keeps its replay buffer alive for its backward.
+    """
 
     def __init__(self, config: TracerConfig | None = None, device: str = "cpu"):
         if config is not None and not isinstance(config, TracerConfig):
@@ -53,15 +62,30 @@ class Tracer:
         except (RuntimeError, ValueError) as exc:
             raise ValueError(f"unknown or unavailable Warp device {device!r}: {exc}") from exc
         self.is_cpu = wp.get_device(self.device).is_cpu
+        # (the ordered traversal keeps the wp.Bvh too: rays whose node heap overflows fall back to it)
         self.bvh = GaussianBvh(self.device)
+        self.ordered = OrderedBvhBuilder(self.device, self.config.ordered_leaf_size) \
+            if self.config.ordered_traversal else None
+        self._no_ordered = empty_ordered(self.device)
         self.capacity = self.config.replay_capacity
         threads = self.config.num_threads if self.is_cpu else 1
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="tracer") if threads > 1 else None
         self._threads = threads
         self._scene_key = None
-        self._cutoff: wp.array | None = None
         self._loaded = False
         self.last_overflow_rays = 0
+
+    def close(self) -> None:
+        """Stop the CPU worker threads (also done when the tracer is garbage collected)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False)
+            self._pool = None
+            self._threads = 1
+
+    def __del__(self):
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            pool.shutdown(wait=False)
 
     # ------------------------------------------------------------------ BVH
     def update(self, gaussians: Gaussians, rebuild: bool = False) -> None:
@@ -69,22 +93,28 @@ class Tracer:
         Gaussians changed, `rebuild` is set or config.always_rebuild."""
         if not isinstance(gaussians, Gaussians):
             raise TypeError(f"gaussians must be a Gaussians, got {type(gaussians).__name__}")
-        with torch.no_grad():
-            cutoff = self.bvh.update(
-                gaussians.means, quats_to_rotmats(gaussians.quats), torch.exp(gaussians.log_scales),
-                gaussians.opacities(), self.config.kernel_p, self.config.alpha_min,
-                rebuild=rebuild or self.config.always_rebuild)
-        self._cutoff = to_warp(cutoff, float, self.device)
+        self.bvh.update(gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
+                        self.config.kernel_p, self.config.alpha_min, rebuild=rebuild or self.config.always_rebuild,
+                        run=lambda jobs: run_chunks(self._pool, jobs), n_chunks=self._threads)
+        if self.ordered is not None and self.bvh.count > 0:
+            if self.bvh.last_was_rebuild:
+                self.ordered.rebuild(self.bvh.lowers, self.bvh.uppers)
+            else:
+                self.ordered.refit()
         self._scene_key = self._key(gaussians)
 
     @staticmethod
     def _key(g: Gaussians):
-        return tuple((id(t), t._version) for t in g.params().values())
+        # strong references (not ids, which Python reuses) + in-place modification counters
+        return tuple((t, t._version) for t in g.params().values())
 
     def _ensure_updated(self, gaussians: Gaussians) -> None:
+        """update() unless these exact tensors, unmodified, were the last ones updated."""
         if not isinstance(gaussians, Gaussians):
             raise TypeError(f"gaussians must be a Gaussians, got {type(gaussians).__name__}")
-        if self._scene_key != self._key(gaussians):
+        key = self._key(gaussians)
+        old = self._scene_key
+        if old is None or len(old) != len(key) or any(a[0] is not b[0] or a[1] != b[1] for a, b in zip(old, key)):
             self.update(gaussians)
 
     # ------------------------------------------------------------------ entry points
@@ -93,9 +123,7 @@ class Tracer:
         (diffuse, depth, normal, roughness, f0 and transmittance outputs)."""
         origins, dirs = self._check_rays(origins, dirs)
         self._ensure_updated(gaussians)
-        w2l, opac = gaussians.world_to_local(), gaussians.opacities()
-        res = _TraceFunction.apply(self, origins, dirs, gaussians.means, w2l, opac, gaussians.diffuse,
-                                   gaussians.normals, gaussians.roughness, gaussians.f0)
+        res = TraceFunction.apply(self, origins, dirs, *gaussians.params().values())
         diffuse, depth, normal, rough, f0, trans, hits, blended, cand, obb = res
         return TraceOutput(diffuse=diffuse, depth=depth, normal=normal, roughness=rough, f0=f0,
                            transmittance=trans, hit_count=hits, blended_count=blended, candidates=cand,
@@ -119,9 +147,7 @@ class Tracer:
             if name not in targets:
                 raise ValueError(f"weight given for layer {name!r} but no target")
         self._ensure_updated(gaussians)
-        with torch.enable_grad():
-            w2l, opac = gaussians.world_to_local(), gaussians.opacities()
-        inputs = [gaussians.means, w2l, opac, gaussians.diffuse, gaussians.normals, gaussians.roughness, gaussians.f0]
+        inputs = list(gaussians.params().values())
         gdata = self._gaussian_data(inputs)
 
         tgt = {}
@@ -142,14 +168,16 @@ class Tracer:
         up = {k: wp.zeros(n_rays, dtype=dt, device=self.device) for k, dt in RAY_GRAD_FIELDS.items()}
         ray_loss = wp.zeros(n_rays, dtype=float, device=self.device)
 
-        def launch(prm, rep, outs, a, b, grads):
-            tviews = {k: (v[a:b] if v.shape[0] == n_rays else v) for k, v in tgt.items()}
-            wp.launch(kernels.fused_kernel, dim=b - a, device=self.device,
-                      inputs=[self._o[a:b], self._d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
-                              _ray_grads(tviews),
-                              loss_prm, ray_grads_view(up, a, b), ray_loss[a:b], grads_struct(grads)])
+        o, d = to_warp(origins, wp.vec3, self.device), to_warp(dirs, wp.vec3, self.device)
 
-        self._o, self._d = to_warp(origins, wp.vec3, self.device), to_warp(dirs, wp.vec3, self.device)
+        def launch(prm, rep, outs, a, b, grads):
+            tviews = {k: (v[a:b] if k in targets and float(weights.get(k, 0.0)) != 0.0 else v) for k, v in tgt.items()}
+            wp.launch(kernels.fused_kernel, dim=b - a, device=self.device,
+                      inputs=[o[a:b], d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
+                              ray_grads_struct(tviews),
+                              loss_prm, ray_grads_view(up, a, b), ray_loss[a:b], grads_struct(grads),
+                              self._ordered_struct(a, b)])
+
         outs, rep, grads = self._run(n_rays, len(gaussians), gdata, launch, with_grads=True)
         out = self._outputs_to_torch(outs, gaussians)
         out = TraceOutput(**{k: (v.detach() if isinstance(v, torch.Tensor) else v) for k, v in vars(out).items()})
@@ -186,25 +214,28 @@ class Tracer:
         prm.capacity = self.capacity
         prm.obb_test = 0 if c.world_aabb_only else 1
         prm.repeated_kbuffer = 1 if c.repeated_kbuffer else 0
+        prm.ordered = 1 if c.ordered_traversal else 0
         return prm
 
+    def _ordered_struct(self, a: int, b: int) -> OrderedBvh:
+        """The ordered BVH with rows a..b of the per-ray heap scratch (placeholder when unused)."""
+        if self.ordered is None or self.ordered.struct is None:
+            return self._no_ordered
+        src, out = self.ordered.struct, OrderedBvh()
+        for name in ("node_lo", "node_hi", "order", "lowers", "uppers", "n_leaves", "leaf_size", "count"):
+            setattr(out, name, getattr(src, name))
+        out.heap_keys, out.heap_nodes = self._heap[0][a:b], self._heap[1][a:b]
+        return out
+
     def _gaussian_data(self, inputs: list[torch.Tensor]) -> GaussianData:
-        means, w2l, opac, diffuse, normals, rough, f0 = inputs
+        """inputs: the raw parameters in PARAM_SHAPES order; geometry comes from update()."""
+        diffuse, normals, rough, f0 = inputs[4:]
         g = GaussianData()
-        g.means = to_warp(means, wp.vec3, self.device)
-        g.w2l = to_warp(w2l.reshape(-1, 3, 3), wp.mat33, self.device)
-        g.opacity = to_warp(opac, float, self.device)
-        g.cutoff = self._cutoff
+        g.packed = self.bvh.packed  # geometry (mean, M, opacity, cutoff) from the last update()
         g.diffuse = to_warp(diffuse, wp.vec3, self.device)
         g.normal = to_warp(normals, wp.vec3, self.device)
         g.roughness = to_warp(rough, float, self.device)
         g.f0 = to_warp(f0, wp.vec3, self.device)
-        with torch.no_grad():
-            cutoff = to_torch(self._cutoff, means.device).reshape(-1, 1).to(torch.float32)
-            zeros = torch.zeros_like(cutoff)
-            packed = torch.cat([means.float(), w2l.float().reshape(-1, 9), opac.float().reshape(-1, 1), cutoff,
-                                zeros, zeros], 1)
-        g.packed = to_warp(packed.reshape(-1, 16), vec16, self.device)
         return g
 
     def _load(self) -> None:
@@ -217,17 +248,22 @@ class Tracer:
         self._load()
         outs = allocate_outputs(n_rays, self.device)
         self.last_overflow_rays = 0
-        chunks = ray_chunks(n_rays, self._threads)
+        stripes = thread_stripes(n_rays, self._threads)
         grads = None
+        if self.ordered is not None:
+            h = self.config.ordered_heap_size
+            self._heap = (wp.empty((n_rays, h), dtype=float, device=self.device),
+                          wp.empty((n_rays, h), dtype=wp.int32, device=self.device))
         while True:
             rep = ReplayArrays.allocate(n_rays, self.capacity, self.device)
-            grads = [allocate_grads(n_gaussians, self.device) for _ in chunks] if with_grads else None
-            if n_rays == 0 or n_gaussians == 0 or self.bvh.bvh is None:
+            grads = [allocate_grads(n_gaussians, self.device) for _ in stripes] if with_grads else None
+            if n_rays == 0 or n_gaussians == 0 or self.bvh.count == 0:
                 outs["transmittance"].fill_(1.0)
                 break
             prm = self._params(self.bvh.id)
-            jobs = [(lambda a=a, b=b, i=i: launch(prm, rep, outs, a, b, grads[i] if grads else None))
-                    for i, (a, b) in enumerate(chunks)]
+            jobs = [(lambda i=i, chunks=chunks: [launch(prm, rep, outs, a, b, grads[i] if grads else None)
+                                                 for a, b in chunks])
+                    for i, chunks in enumerate(stripes)]
             run_chunks(self._pool, jobs)
             needed = to_torch(outs["needed"], torch.device("cpu"))
             n_over = int((needed > 0).sum())
@@ -239,9 +275,12 @@ class Tracer:
                 raise RuntimeError(
                     f"replay buffer overflow: a ray needs {most} slots > max_replay_capacity "
                     f"{self.config.max_replay_capacity}; raise TracerConfig.max_replay_capacity")
-            self.capacity = min(self.config.max_replay_capacity, max(2 * self.capacity, most))
+            grown = min(self.config.max_replay_capacity, max(2 * self.capacity, most))
+            log.info("replay buffer overflow on %d rays (needed %d > %d slots): re-running with %d",
+                     n_over, most, self.capacity, grown)
+            self.capacity = grown
         if grads is not None:
-            grads = _sum_grads(grads)
+            grads = sum_grads(grads)
         return outs, rep, grads
 
     def _forward(self, origins, dirs, inputs):
@@ -251,7 +290,8 @@ class Tracer:
 
         def launch(prm, rep, outs, a, b, _grads):
             wp.launch(kernels.forward_kernel, dim=b - a, device=self.device,
-                      inputs=[o[a:b], d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b)])
+                      inputs=[o[a:b], d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
+                              self._ordered_struct(a, b)])
 
         outs, rep, _ = self._run(n_rays, inputs[0].shape[0], gdata, launch, with_grads=False)
         return {"o": o, "d": d, "gdata": gdata, "outs": outs, "rep": rep, "capacity": self.capacity}
@@ -259,9 +299,9 @@ class Tracer:
     def _backward(self, state, upstream: dict[str, torch.Tensor], inputs) -> list[torch.Tensor]:
         n_rays = state["o"].shape[0]
         n = inputs[0].shape[0]
-        chunks = ray_chunks(n_rays, self._threads)
-        grads = [allocate_grads(n, self.device) for _ in chunks]
-        if n_rays and n and self.bvh.bvh is not None:
+        stripes = thread_stripes(n_rays, self._threads)
+        grads = [allocate_grads(n, self.device) for _ in stripes]
+        if n_rays and n and self.bvh.count > 0:
             up = {k: to_warp(upstream[k], dt, self.device) for k, dt in RAY_GRAD_FIELDS.items()}
             saved_cap, self.capacity = self.capacity, state["capacity"]
             prm = self._params(self.bvh.id)
@@ -273,15 +313,26 @@ class Tracer:
                           inputs=[state["o"][a:b], state["d"][a:b], gdata, prm, rep.view(a, b),
                                   outputs_view(outs, a, b), ray_grads_view(up, a, b), grads_struct(grads[i])])
 
-            run_chunks(self._pool, [(lambda i=i, a=a, b=b: job(i, a, b)) for i, (a, b) in enumerate(chunks)])
-        return self._grads_to_torch(_sum_grads(grads), inputs)
+            run_chunks(self._pool, [(lambda i=i, chunks=chunks: [job(i, a, b) for a, b in chunks])
+                                    for i, chunks in enumerate(stripes)])
+        return self._grads_to_torch(sum_grads(grads), inputs)
 
     def _grads_to_torch(self, grads: dict[str, wp.array], inputs) -> list[torch.Tensor]:
-        out = []
-        for key, like in zip(_GRAD_TO_INPUT, inputs):
-            g = to_torch(grads[key], like.device).reshape(like.shape).to(like.dtype)
-            out.append(g)
-        return out
+        """Gradients wrt the activated values -> wrt the raw parameters (PARAM_SHAPES order);
+        the geometry part goes through the Warp chain kernel."""
+        means, quats, log_scales, logits = inputs[:4]
+        n = means.shape[0]
+        g_quats = wp.zeros(n, dtype=wp.vec4, device=self.device)
+        g_log_scales = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        g_logits = wp.zeros(n, dtype=float, device=self.device)
+        if n:
+            wp.launch(chain_kernel, dim=n, device=self.device,
+                      inputs=[to_warp(quats, wp.vec4, self.device), to_warp(log_scales, wp.vec3, self.device),
+                              to_warp(logits, float, self.device), grads["w2l"], grads["opacity"],
+                              g_quats, g_log_scales, g_logits])
+        raw = [grads["means"], g_quats, g_log_scales, g_logits, grads["diffuse"], grads["normal"],
+               grads["roughness"], grads["f0"]]
+        return [to_torch(g, like.device).reshape(like.shape).to(like.dtype) for g, like in zip(raw, inputs)]
 
     def _outputs_to_torch(self, outs: dict[str, wp.array], gaussians: Gaussians) -> TraceOutput:
         dev, dt = gaussians.device, gaussians.dtype
@@ -292,52 +343,3 @@ class Tracer:
                            blended_count=f["blended"], candidates=f["candidates"],
                            obb_candidates=f["obb_candidates"], overflow_rays=self.last_overflow_rays,
                            replay_capacity=self.capacity)
-
-
-def _ray_grads(views: dict[str, wp.array]) -> RayGrads:
-    s = RayGrads()
-    for k in RAY_GRAD_FIELDS:
-        setattr(s, k, views[k])
-    return s
-
-
-def _sum_grads(per_thread: list[dict[str, wp.array]]) -> dict[str, wp.array]:
-    """Sum per-thread gradient buffers into the first (CPU atomics are not safe across
-    concurrent launches). Only CPU launches are split over threads."""
-    total = per_thread[0]
-    for other in per_thread[1:]:
-        assert total["means"].device.is_cpu
-        for k in total:
-            wp.to_torch(total[k], requires_grad=False).add_(wp.to_torch(other[k], requires_grad=False))
-    return total
-
-
-class _TraceFunction(torch.autograd.Function):
-    """Inputs: activated means [N,3], w2l [N,3,3], opacity [N], diffuse [N,3], normals [N,3],
-    roughness [N], f0 [N,3]; torch autograd chains them to the raw parameters."""
-
-    @staticmethod
-    def forward(ctx, tracer: Tracer, origins, dirs, means, w2l, opac, diffuse, normals, rough, f0):
-        inputs = [means, w2l, opac, diffuse, normals, rough, f0]
-        state = tracer._forward(origins, dirs, inputs)
-        out = tracer._outputs_to_torch(state["outs"], _Like(means))
-        ctx.tracer, ctx.state = tracer, state
-        ctx.save_for_backward(means, w2l, opac, diffuse, normals, rough, f0)
-        ints = (out.hit_count, out.blended_count, out.candidates, out.obb_candidates)
-        ctx.mark_non_differentiable(*ints)
-        return (out.diffuse, out.depth, out.normal, out.roughness, out.f0, out.transmittance, *ints)
-
-    @staticmethod
-    def backward(ctx, g_diffuse, g_depth, g_normal, g_rough, g_f0, g_trans, *_):
-        inputs = list(ctx.saved_tensors)
-        up = {"diffuse": g_diffuse, "depth": g_depth, "normal": g_normal, "roughness": g_rough, "f0": g_f0,
-              "transmittance": g_trans}
-        grads = ctx.tracer._backward(ctx.state, up, inputs)
-        return (None, None, None, *grads)
-
-
-class _Like:
-    """Minimal stand-in exposing device/dtype for _outputs_to_torch."""
-
-    def __init__(self, t: torch.Tensor):
-        self.device, self.dtype = t.device, t.dtype

@@ -1,0 +1,101 @@
+"""Ablation: 3DGRT-style repeated k-buffer traversal (one BVH query per round of k hits)."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from models.tracer.blend import write_outputs
+from models.tracer.hit import eval_packed, hit_less
+from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
+
+
+@wp.func
+def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
+                    outs: RayOutputs) -> int:
+    """Ablation (3DGRT-style): each round re-traverses the BVH keeping the k nearest hits
+    beyond the last blended one in an insertion-sorted k-buffer (slots blended..blended+k-1
+    of the replay buffer, so the backward is shared). Returns 0 on replay overflow."""
+    trans = float(1.0)
+    c_diffuse = wp.vec3(0.0)
+    c_normal = wp.vec3(0.0)
+    c_f0 = wp.vec3(0.0)
+    c_depth = float(0.0)
+    c_rough = float(0.0)
+    blended = int(0)
+    n_acc = int(0)
+    cand = int(0)
+    obb = int(0)
+    last_t = float(-1.0e30)
+    last_id = int(-1)
+    first = int(1)
+    done = int(0)
+    while done == 0:
+        if blended + prm.k > prm.capacity:
+            outs.needed[ray] = blended + prm.k
+            outs.candidates[ray] = cand
+            outs.obb_candidates[ray] = obb
+            return 0
+        base = blended
+        m = int(0)
+        query = wp.bvh_query_ray(prm.bvh, o, d)
+        gid = int(0)
+        while wp.bvh_query_next(query, gid):
+            h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
+            if first != 0:
+                cand += 1
+                if h[2] > 0.0:
+                    obb += 1
+                if h[1] > 0.0:
+                    n_acc += 1
+            # (Warp evaluates both operands of `and`/`or`: nest the ifs to keep reads in bounds)
+            if h[1] > 0.0:
+                if hit_less(last_t, last_id, h[0], gid) != 0:
+                    insert = int(0)
+                    if m < prm.k:
+                        insert = 1
+                    elif hit_less(h[0], gid, rep.t[ray, base + m - 1], rep.ids[ray, base + m - 1]) != 0:
+                        insert = 1
+                    if insert != 0:
+                        if m < prm.k:
+                            m += 1
+                        j = m - 1
+                        shifting = int(1)
+                        while shifting != 0:
+                            shifting = 0
+                            if j > 0:
+                                if hit_less(h[0], gid, rep.t[ray, base + j - 1], rep.ids[ray, base + j - 1]) != 0:
+                                    rep.t[ray, base + j] = rep.t[ray, base + j - 1]
+                                    rep.ids[ray, base + j] = rep.ids[ray, base + j - 1]
+                                    rep.alpha[ray, base + j] = rep.alpha[ray, base + j - 1]
+                                    j -= 1
+                                    shifting = 1
+                        rep.t[ray, base + j] = h[0]
+                        rep.ids[ray, base + j] = gid
+                        rep.alpha[ray, base + j] = h[1]
+        first = 0
+        if m < prm.k:
+            done = 1
+        for j in range(base, base + m):
+            if trans < prm.trans_threshold:
+                done = 1
+            else:
+                if blended == j:
+                    gj = rep.ids[ray, j]
+                    a = rep.alpha[ray, j]
+                    w = trans * a
+                    c_diffuse += w * g.diffuse[gj]
+                    c_normal += w * g.normal[gj]
+                    c_f0 += w * g.f0[gj]
+                    c_rough += w * g.roughness[gj]
+                    c_depth += w * rep.t[ray, j]
+                    rep.trans[ray, j] = trans
+                    trans = trans * (1.0 - a)
+                    blended += 1
+                    last_t = rep.t[ray, j]
+                    last_id = gj
+        if m == 0 or trans < prm.trans_threshold:
+            done = 1
+    outs.candidates[ray] = cand
+    outs.obb_candidates[ray] = obb
+    write_outputs(ray, n_acc, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    return 1

@@ -1,0 +1,191 @@
+"""Front-to-back ordered traversal with early termination (stretch; config.ordered_traversal).
+
+Best-first over the ordered BVH (binary min-heap of nodes keyed by their entry t). A hit's
+max-response point lies in its Gaussian's box, inside every ancestor's AABB, so its t is
+>= the entry t of any node that contains it. Hence stored hits with t below the smallest
+entry t of the nodes still in the heap are final: they are composited in order as soon as that holds, and the ray
+stops once T < threshold and one more accepted hit (or none anywhere) settles the tail rule.
+hit_count then counts the accepted hits found before stopping (<= the full count).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from models.tracer.blend import write_outputs
+from models.tracer.hit import eval_packed, hit_less
+from models.tracer.ordered_bvh import OrderedBvh
+from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
+
+# The node heap lives in per-ray rows of ob.heap_keys / ob.heap_nodes (global scratch): local
+# vectors are values in Warp and made every call of the shared forward_ray ~3x slower.
+
+
+@wp.func
+def box_entry(o: wp.vec3, inv_d: wp.vec3, lo: wp.vec3, hi: wp.vec3, t_min: float) -> float:
+    """Entry t of the ray into [lo, hi] (clamped below at t_min), or 1e30 when missed."""
+    ta = wp.cw_mul(lo - o, inv_d)
+    tb = wp.cw_mul(hi - o, inv_d)
+    t0 = wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
+    t1 = wp.min(wp.min(wp.max(ta[0], tb[0]), wp.max(ta[1], tb[1])), wp.max(ta[2], tb[2]))
+    if lo[0] > hi[0] or t1 < t0 or t1 <= t_min:
+        return 1.0e30
+    return wp.max(t0, t_min)
+
+
+@wp.func
+def safe_inv(x: float) -> float:
+    if wp.abs(x) < 1.0e-30:
+        if x < 0.0:
+            return -1.0e30
+        return 1.0e30
+    return 1.0 / x
+
+
+@wp.func
+def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
+                    outs: RayOutputs, ob: OrderedBvh) -> int:
+    """Best-first traversal. Returns 0 on replay overflow (needed = twice the capacity) and
+    -1 when the node heap overflowed (the caller falls back to the single traversal)."""
+    inv_d = wp.vec3(safe_inv(d[0]), safe_inv(d[1]), safe_inv(d[2]))
+    keys = ob.heap_keys[ray]
+    nodes = ob.heap_nodes[ray]
+    heap_cap = keys.shape[0]
+    size = int(0)
+    root_t = box_entry(o, inv_d, ob.node_lo[0], ob.node_hi[0], prm.t_min)
+    if root_t < 1.0e29:
+        keys[0] = root_t
+        nodes[0] = 0
+        size = 1
+    trans = float(1.0)
+    c_diffuse = wp.vec3(0.0)
+    c_normal = wp.vec3(0.0)
+    c_f0 = wp.vec3(0.0)
+    c_depth = float(0.0)
+    c_rough = float(0.0)
+    n = int(0)
+    blended = int(0)
+    done = int(0)
+    cand = int(0)
+    obb = int(0)
+    nearest = float(3.0e38)   # smallest t among stored, not yet blended hits
+    first_leaf = ob.n_leaves - 1
+    while size > 0:
+        if done != 0 and n > blended:
+            break
+        node = nodes[0]
+        # pop the heap minimum (binary min-heap inlined: Warp passes vectors to funcs by value)
+        size -= 1
+        keys[0] = keys[size]
+        nodes[0] = nodes[size]
+        i = int(0)
+        moving = int(1)
+        while moving != 0:
+            moving = 0
+            smallest = i
+            if 2 * i + 1 < size:
+                if keys[2 * i + 1] < keys[smallest]:
+                    smallest = 2 * i + 1
+            if 2 * i + 2 < size:
+                if keys[2 * i + 2] < keys[smallest]:
+                    smallest = 2 * i + 2
+            if smallest != i:
+                kt = keys[smallest]
+                nt = nodes[smallest]
+                keys[smallest] = keys[i]
+                nodes[smallest] = nodes[i]
+                keys[i] = kt
+                nodes[i] = nt
+                i = smallest
+                moving = 1
+        if node >= first_leaf:
+            leaf = node - first_leaf
+            for li in range(ob.leaf_size):
+                k = leaf * ob.leaf_size + li
+                if k < ob.count:
+                    gid = ob.order[k]
+                    if box_entry(o, inv_d, ob.lowers[gid], ob.uppers[gid], prm.t_min) < 1.0e29:
+                        cand += 1
+                        h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max,
+                                        prm.t_min, prm.obb_test)
+                        if h[2] > 0.0:
+                            obb += 1
+                        if h[1] > 0.0:
+                            if n >= prm.capacity:
+                                outs.needed[ray] = 2 * prm.capacity
+                                return 0
+                            rep.ids[ray, n] = gid
+                            rep.t[ray, n] = h[0]
+                            rep.alpha[ray, n] = h[1]
+                            n += 1
+                            nearest = wp.min(nearest, h[0])
+        else:
+            for c in range(2):
+                child = 2 * node + 1 + c
+                tc = box_entry(o, inv_d, ob.node_lo[child], ob.node_hi[child], prm.t_min)
+                if tc < 1.0e29:
+                    if size >= heap_cap:
+                        return -1
+                    j = size
+                    keys[j] = tc
+                    nodes[j] = child
+                    size += 1
+                    rising = int(1)
+                    while rising != 0:
+                        rising = 0
+                        if j > 0:
+                            parent = (j - 1) // 2
+                            if keys[parent] > keys[j]:
+                                kt = keys[parent]
+                                nt = nodes[parent]
+                                keys[parent] = keys[j]
+                                nodes[parent] = nodes[j]
+                                keys[j] = kt
+                                nodes[j] = nt
+                                j = parent
+                                rising = 1
+        if done == 0:
+            # stored hits before every pending node's entry (with a float margin) are final
+            bound = float(3.0e38)
+            if size > 0:
+                bound = keys[0] - 1.0e-5 * (1.0 + wp.abs(keys[0]))
+            scanning = int(1)
+            while scanning != 0 and blended < n and nearest < bound:
+                best = blended
+                t_best = rep.t[ray, blended]
+                id_best = rep.ids[ray, blended]
+                for m in range(blended + 1, n):
+                    if hit_less(rep.t[ray, m], rep.ids[ray, m], t_best, id_best) != 0:
+                        best = m
+                        t_best = rep.t[ray, m]
+                        id_best = rep.ids[ray, m]
+                if trans < prm.trans_threshold:
+                    done = 1
+                    scanning = 0
+                else:
+                    a = rep.alpha[ray, best]
+                    if best != blended:
+                        rep.ids[ray, best] = rep.ids[ray, blended]
+                        rep.t[ray, best] = rep.t[ray, blended]
+                        rep.alpha[ray, best] = rep.alpha[ray, blended]
+                        rep.ids[ray, blended] = id_best
+                        rep.t[ray, blended] = t_best
+                        rep.alpha[ray, blended] = a
+                    w = trans * a
+                    c_diffuse += w * g.diffuse[id_best]
+                    c_normal += w * g.normal[id_best]
+                    c_f0 += w * g.f0[id_best]
+                    c_rough += w * g.roughness[id_best]
+                    c_depth += w * t_best
+                    rep.trans[ray, blended] = trans
+                    trans = trans * (1.0 - a)
+                    blended += 1
+                    nearest = float(3.0e38)
+                    for m in range(blended, n):
+                        nearest = wp.min(nearest, rep.t[ray, m])
+            if trans < prm.trans_threshold:
+                done = 1
+    outs.candidates[ray] = cand
+    outs.obb_candidates[ray] = obb
+    write_outputs(ray, n, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    return 1

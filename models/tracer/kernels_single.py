@@ -1,0 +1,97 @@
+"""Single traversal (the method): one BVH query stores every accepted hit in the replay
+buffer, then rounds of "take the k nearest beyond the last taken" are selected in place
+(so the blended prefix ends up sorted for the backward) and composited front to back."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from models.tracer.blend import write_outputs
+from models.tracer.hit import eval_packed, hit_less
+from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
+
+
+@wp.func
+def collect_hits(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
+                 outs: RayOutputs) -> int:
+    """Single traversal: store all accepted hits; returns their count (may exceed capacity)."""
+    query = wp.bvh_query_ray(prm.bvh, o, d)
+    gid = int(0)
+    n = int(0)
+    cand = int(0)
+    obb = int(0)
+    while wp.bvh_query_next(query, gid):
+        cand += 1
+        h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
+        if h[2] > 0.0:
+            obb += 1
+        if h[1] > 0.0:
+            if n < prm.capacity:
+                rep.ids[ray, n] = gid
+                rep.t[ray, n] = h[0]
+                rep.alpha[ray, n] = h[1]
+            n += 1
+    outs.candidates[ray] = cand
+    outs.obb_candidates[ray] = obb
+    return n
+
+
+@wp.func
+def forward_single(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
+                   outs: RayOutputs) -> int:
+    """One traversal + sorted rounds of k. Returns 0 on replay overflow (outputs not written)."""
+    n = collect_hits(ray, o, d, g, prm, rep, outs)
+    if n > prm.capacity:
+        outs.needed[ray] = n
+        outs.hit_count[ray] = n
+        return 0
+    trans = float(1.0)
+    c_diffuse = wp.vec3(0.0)
+    c_normal = wp.vec3(0.0)
+    c_f0 = wp.vec3(0.0)
+    c_depth = float(0.0)
+    c_rough = float(0.0)
+    taken = int(0)
+    blended = int(0)
+    done = int(0)
+    while taken < n and done == 0:
+        end = wp.min(taken + prm.k, n)
+        # take the k nearest beyond the last taken: selection into slots taken..end-1
+        for j in range(taken, end):
+            best = j
+            t_best = rep.t[ray, j]
+            id_best = rep.ids[ray, j]
+            for m in range(j + 1, n):
+                t_m = rep.t[ray, m]
+                id_m = rep.ids[ray, m]
+                if hit_less(t_m, id_m, t_best, id_best) != 0:
+                    best = m
+                    t_best = t_m
+                    id_best = id_m
+            if best != j:
+                a_best = rep.alpha[ray, best]
+                rep.ids[ray, best] = rep.ids[ray, j]
+                rep.t[ray, best] = rep.t[ray, j]
+                rep.alpha[ray, best] = rep.alpha[ray, j]
+                rep.ids[ray, j] = id_best
+                rep.t[ray, j] = t_best
+                rep.alpha[ray, j] = a_best
+        for j in range(taken, end):
+            if done == 0:
+                if trans < prm.trans_threshold:
+                    done = 1
+                else:
+                    gid = rep.ids[ray, j]
+                    a = rep.alpha[ray, j]
+                    w = trans * a
+                    c_diffuse += w * g.diffuse[gid]
+                    c_normal += w * g.normal[gid]
+                    c_f0 += w * g.f0[gid]
+                    c_rough += w * g.roughness[gid]
+                    c_depth += w * rep.t[ray, j]
+                    rep.trans[ray, j] = trans
+                    trans = trans * (1.0 - a)
+                    blended += 1
+        taken = end
+    write_outputs(ray, n, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    return 1

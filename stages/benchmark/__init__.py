@@ -1,0 +1,1 @@
+"""Benchmark stage: `python -m stages.benchmark tracer ...` prints a table and writes JSON."""
