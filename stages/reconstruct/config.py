@@ -40,8 +40,9 @@ class ReconstructConfig:
     adam_eps: float = 1e-15
     prune_every: int = 125  # pruning period (steps)
     prune_from: int = 1250  # first step that prunes
-    prune_min_weight: float = 0.1  # keep Gaussians with accumulated blending weight per view >= this
-    prune_views: int = 4  # views traced to measure blending weights at a pruning step
+    prune_min_weight: float = 0.1  # keep Gaussians whose blending weight summed over a view, averaged over views,
+    # is >= this at the reference's 768-pixel image height (scaled by pixel count: (H / 768)^2 at height H)
+    prune_views: int = 8  # views traced to measure blending weights at a pruning step
     far_field: str = "auto"  # auto (only if reflections can see past the capture) | on | off
     far_field_count: int = 75000  # far-field Gaussians added at the end of warm-up
     radiance_clamp: float = 0.0  # clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: 5.0)

@@ -35,6 +35,7 @@ PARAM_LR = {  # Gaussians field -> LearningRates field
     "diffuse": "diffuse", "normals": "normal", "roughness": "roughness", "f0": "f0",
 }
 GBUFFER = ("depth", "normal", "roughness", "f0")
+REFERENCE_HEIGHT = 768  # image height the reference pruning threshold is stated at
 
 
 class Backend:
@@ -241,7 +242,9 @@ class Trainer:
     def prune(self) -> int:
         n_views = min(self.config.prune_views, len(self.rays.views))
         views = torch.randperm(len(self.rays.views), generator=self.generator)[:n_views].tolist()
-        keep = self.blending_weights(views) >= self.config.prune_min_weight
+        height = self.rays.views[0].camera.height
+        threshold = self.config.prune_min_weight * (height / REFERENCE_HEIGHT) ** 2
+        keep = self.blending_weights(views) >= threshold
         removed = int((~keep).sum())
         if removed and keep.any():
             self._replace(keep=keep)
