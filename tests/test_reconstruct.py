@@ -87,3 +87,19 @@ def test_config_errors():
         ReconstructConfig.from_dict({"iters": 3})
     with pytest.raises(ValueError, match=r"unknown reconstruct.loss key\(s\) \['colour'\]"):
         ReconstructConfig.from_dict({"loss": {"colour": 1.0}})
+
+
+def test_far_field_only_when_reflections_escape(demo, tmp_path):
+    capture, init = demo
+    # demo: the orbiting cameras never see the ceiling its mirror sphere reflects; a threshold above the
+    # measured escape fraction calls it closed
+    closed = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, far_field_escape=0.9)), tracer())
+    assert not closed.far_field
+    assert any(d.startswith("far field: off, closed scene") for d in closed.decisions), closed.decisions
+    # mirror_book: the mirror reflects the part of the room behind the training cameras, never captured
+    cfg = load_config("mirror_book", presets=["ci"])
+    book = render_capture(cfg["synth"], tmp_path / "book", progress=False)
+    book_init, _ = dense_init(book, InitConfig.from_dict(cfg["init"]))
+    opened = Trainer(book, book_init, ReconstructConfig.from_dict(SMALL), tracer())
+    assert opened.far_field
+    assert any("mirror-like reflection rays leave the initial geometry" in d for d in opened.decisions), opened.decisions

@@ -61,7 +61,7 @@ class Trainer:
         self.decisions: list[str] = []
         self.weights = self._active_losses()
         self.reflections = self._needs_reflections()
-        self.far_field = self._needs_far_field(capture)
+        self.far_field = self._needs_far_field(init)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.far_field_added = False
@@ -99,7 +99,7 @@ class Trainer:
         self.decisions.append(f"reflections: on after step {self.config.warmup}, max path length {self.config.max_path_length}")
         return True
 
-    def _needs_far_field(self, capture: Capture) -> bool:
+    def _needs_far_field(self, init: Gaussians) -> bool:
         mode = self.config.far_field
         if mode not in ("auto", "on", "off"):
             raise ValueError(f"far_field must be auto, on or off, got {mode!r}")
@@ -115,8 +115,36 @@ class Trainer:
                 f"far field: on, {open_pixels:.1%} of training pixels see past the captured geometry"
             )
             return True
-        self.decisions.append("far field: off, every training pixel hits captured geometry (closed scene)")
+        escaped = self._escaping_reflections(init)
+        if escaped > self.config.far_field_escape:
+            self.decisions.append(
+                f"far field: on, {escaped:.1%} of mirror-like reflection rays leave the initial geometry"
+            )
+            return True
+        self.decisions.append(
+            f"far field: off, closed scene ({escaped:.1%} of mirror-like reflection rays escape the initial geometry)"
+        )
         return False
+
+    @torch.no_grad()
+    def _escaping_reflections(self, init: Gaussians, max_rays: int = 16384) -> float:
+        """Fraction of perfect-mirror reflections of shiny training pixels (F0 > 0.3, roughness < 0.3, from the
+        buffers) that hit none of the initial Gaussians: what reflections would see beyond the captured geometry.
+        (Not a transmittance test: initial Gaussians are faint, opacity 0.1, so walls are semi-transparent.)"""
+        t = self.rays.targets
+        if not all(k in t for k in ("depth", "normal", "f0", "roughness")):
+            return 0.0
+        shiny = self.rays.mask & (t["f0"].mean(-1) > 0.3) & (t["roughness"].reshape(-1) < 0.3)
+        index = torch.nonzero(shiny).reshape(-1)
+        if len(index) == 0:
+            return 0.0
+        index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(0))[:max_rays]]
+        d = self.rays.dirs[index]
+        n = torch.nn.functional.normalize(t["normal"][index], dim=-1)
+        x = self.rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
+        r = d - 2 * (d * n).sum(-1, keepdim=True) * n
+        out = self.backend.trace(x + 0.01 * r, r, init)
+        return float((out.hit_count.reshape(-1) == 0).float().mean())
 
     # ----------------------------------------------------------------- parameters
     def gaussians(self) -> Gaussians:
