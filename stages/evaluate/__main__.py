@@ -22,10 +22,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--renders", required=True, type=Path, help="render stage output folder")
     p.add_argument("--model", type=Path, help="reconstruct output folder (for training time)")
     p.add_argument("--out", required=True, type=Path, help="metrics.json path")
+    p.add_argument("--config-json", default="{}", help="the 'evaluate' section as JSON: {regions: {name: {min, max}}}")
     args = p.parse_args(argv)
     try:
-        capture = read_capture(args.capture, layers=["diffuse", "specular"])
-        metrics = evaluate_renders(capture, args.renders / "test")
+        section = json.loads(args.config_json)
+        unknown = set(section) - {"regions"}
+        if unknown:
+            raise ValueError(f"unknown evaluate option(s) {sorted(unknown)}; known: ['regions']")
+        capture = read_capture(args.capture, layers=["diffuse", "specular", "depth", "mask"])
+        metrics = evaluate_renders(capture, args.renders / "test", section.get("regions"))
     except (CaptureError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -21,7 +21,18 @@ from .metrics import psnr, ssim
 LAYERS = ("diffuse", "specular", "final")
 
 
-def evaluate_renders(capture: Capture, renders: Path) -> dict:
+def region_mask(view, box_min, box_max) -> np.ndarray:
+    """[H, W] bool: pixels whose ground-truth surface point (camera + ray x depth) lies in the world box."""
+    points = view.camera.origin + view.camera.ray_directions() * view.buffers["depth"].astype(np.float64)
+    inside = np.all((points >= np.asarray(box_min)) & (points <= np.asarray(box_max)), axis=-1)
+    if "mask" in view.buffers:
+        inside &= view.buffers["mask"][..., 0] > 0.5
+    return inside
+
+
+def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = None) -> dict:
+    """Per-view and mean metrics; ``regions``: name -> {min: [x, y, z], max: [x, y, z]} world boxes, each
+    scored (PSNR per layer, linear) on the pixels whose ground-truth surface lies inside it."""
     per_view = {}
     for view in capture.split("test"):
         exr = renders / f"{view.name}.exr"
@@ -38,7 +49,13 @@ def evaluate_renders(capture: Capture, renders: Path) -> dict:
             row[f"ssim_{layer}"] = ssim(p, t)
             row[f"psnr_{layer}_tonemapped"] = psnr(tonemap(pred[layer]), tonemap(gt[layer]))
             row[f"ssim_{layer}_tonemapped"] = ssim(tonemap(pred[layer]), tonemap(gt[layer]))
+        for name, box in (regions or {}).items():
+            m = region_mask(view, box["min"], box["max"])
+            row[f"{name}_pixels"] = int(m.sum())
+            for layer in LAYERS:
+                if m.any():
+                    row[f"{name}_psnr_{layer}"] = psnr(np.clip(pred[layer], 0, 1), np.clip(gt[layer], 0, 1), m)
         per_view[view.name] = row
-    keys = next(iter(per_view.values())).keys() if per_view else []
-    mean = {k: float(np.mean([r[k] for r in per_view.values()])) for k in keys}
+    keys = dict.fromkeys(k for r in per_view.values() for k in r)
+    mean = {k: float(np.mean([r[k] for r in per_view.values() if k in r])) for k in keys}
     return {"mean": mean, "views": per_view, "lpips": "not computed: LPIPS needs network weights that cannot be fetched here"}

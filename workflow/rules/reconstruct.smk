@@ -46,8 +46,9 @@ rule evaluate:
         f"{RESULTS}/{{scene}}/metrics.json",
     params:
         py=PY,
+        cfg=section("evaluate"),
     log:
         f"{RESULTS}/{{scene}}/logs/evaluate.log",
     shell:
         "{params.py} -m stages.evaluate --capture {input.capture} --renders {input.renders} "
-        "--model $(dirname {input.model}) --out {output} > {log} 2>&1"
+        "--model $(dirname {input.model}) --config-json {params.cfg:q} --out {output} > {log} 2>&1"
