@@ -1,6 +1,7 @@
 # Editable reflections pipeline. Only includes and `rule all`; see workflow/rules/.
 #   snakemake --cores 2 --config scene=demo            one scene end to end
 #   snakemake --cores 2 --config scene=demo preset=ci  tiny sizes (CI)
+#   snakemake --cores 2 --config batch=synthetic       three synthetic scenes + batch report
 #   snakemake --cores 2 benchmark_tracer               tracer benchmark table + JSON
 
 include: "workflow/rules/common.smk"
@@ -8,6 +9,7 @@ include: "workflow/rules/synth.smk"
 include: "workflow/rules/init.smk"
 include: "workflow/rules/reconstruct.smk"
 include: "workflow/rules/benchmark.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

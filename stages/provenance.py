@@ -26,9 +26,25 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
+def peak_memory(device: str = "cpu") -> dict[str, float]:
+    """Peak resident memory of this process (MiB) and, on CUDA, peak torch allocation (MiB)."""
+    import resource
+    import sys
+
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    out = {"peak_rss_mib": round(rss / (2**20 if sys.platform == "darwin" else 2**10), 1)}
+    if str(device).startswith("cuda"):
+        import torch
+
+        if torch.cuda.is_available():
+            out["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated() / 2**20, 1)
+    return out
+
+
 def write_stage_json(out_dir: str | Path, stage: str, config: Any, wall_time_s: float, device: str = "cpu",
                      extra: dict | None = None) -> Path:
-    """Write ``<out_dir>/stage.json`` atomically: stage, config hash, package versions, device, wall time."""
+    """Write ``<out_dir>/stage.json`` atomically: stage, config hash, package versions, device, wall time,
+    peak memory."""
     out_dir = Path(out_dir)
     record = {
         "stage": stage,
@@ -38,6 +54,7 @@ def write_stage_json(out_dir: str | Path, stage: str, config: Any, wall_time_s: 
         "python": platform.python_version(),
         "device": device,
         "wall_time_s": round(wall_time_s, 3),
+        **peak_memory(device),
         "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         **(extra or {}),
     }

@@ -7,3 +7,31 @@ import torch
 
 # As the stage CLIs do (stages.cli.single_threaded_torch): the tracer owns the cores.
 torch.set_num_threads(1)
+
+
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SNAKEMAKE = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), "--cores", "2"]
+
+
+def snakemake(workdir, *args, timeout=600):
+    """Run the workflow in ``workdir`` (its .snakemake/ state stays there)."""
+    return subprocess.run([*SNAKEMAKE, "--directory", str(workdir), *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.fixture(scope="session")
+def tiny_demo(tmp_path_factory):
+    """The whole pipeline on demo at CI size (preset ci, ~20 s), run once per session:
+    (workdir, results folder, the snakemake arguments used, the first run's process)."""
+    workdir = tmp_path_factory.mktemp("tiny_demo")
+    results = workdir / "results"
+    args = ("--config", "scene=demo", "preset=ci", f"results={results}")
+    proc = snakemake(workdir, *args)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return workdir, results, args, proc

@@ -2,18 +2,11 @@
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from models.capture import read_capture
-
-ROOT = Path(__file__).resolve().parents[1]
-SNAKEMAKE = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), "--cores", "2"]
-
-
-def snakemake(workdir, *args):
-    return subprocess.run([*SNAKEMAKE, "--directory", str(workdir), *args], capture_output=True, text=True, timeout=600)
+from tests.conftest import ROOT, snakemake
 
 
 def test_unknown_scene_is_one_line_listing_known(tmp_path):
@@ -47,11 +40,8 @@ def test_lint():
     assert all(l.startswith("* Specify a conda environment or container") for l in lints), lints
 
 
-def test_tiny_run_then_cached(tmp_path):
-    results = tmp_path / "results"
-    args = ("--config", "scene=demo", "preset=ci", f"results={results}")
-    first = snakemake(tmp_path, *args)
-    assert first.returncode == 0, first.stderr[-3000:]
+def test_tiny_run_then_cached(tiny_demo):
+    tmp_path, results, args, _ = tiny_demo
     capture = read_capture(results / "demo" / "capture")
     assert len(capture.split("train")) == 4 and len(capture.split("test")) == 2
     assert capture.views[0].camera.width == 32 and capture.views[0].camera.height == 24
@@ -65,7 +55,7 @@ def test_tiny_run_then_cached(tmp_path):
     metrics = json.loads((results / "demo" / "metrics.json").read_text())["mean"]
     assert metrics["psnr_diffuse"] > 15  # a trained (if tiny) scene, not an empty one
     assert (results / "demo" / "renders" / "test" / "png").is_dir()
-    for stage in ("synth", "init", "reconstruct", "render", "evaluate"):
+    for stage in ("synth", "init", "reconstruct", "render", "evaluate", "report"):
         assert (results / "demo" / "logs" / f"{stage}.log").is_file(), stage
     second = snakemake(tmp_path, *args)
     assert second.returncode == 0, second.stderr

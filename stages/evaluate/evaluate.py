@@ -21,6 +21,38 @@ from .metrics import psnr, ssim
 LAYERS = ("diffuse", "specular", "final")
 
 
+def measure_fps(model_path: Path, camera, max_path_length: int, device: str = "cpu", threads: int = 2,
+                repeats: int = 3) -> dict:
+    """Frames per second rendering ``camera`` at 1 sample per pixel without the denoiser: the whole path
+    (primary + ``max_path_length`` - 1 reflection segments) and the primary segment alone. Median of
+    ``repeats`` timed frames after one warm-up frame (kernel compilation, BVH build)."""
+    import time
+
+    import torch
+
+    from models.gaussians import read_ply
+    from models.tracer import Tracer, TracerConfig
+    from stages.render.render import RenderConfig, render_view
+
+    gaussians = read_ply(model_path)
+    tracer = Tracer(TracerConfig(num_threads=threads), device=device)
+    try:
+        tracer.update(gaussians)
+        out = {"fps_resolution": [camera.width, camera.height]}
+        for key, length in (("fps_1spp", max_path_length), ("fps_primary", 1)):
+            cfg = RenderConfig(spp=1, max_path_length=length, denoise=False, path_views=0, video=False)
+            generator = torch.Generator().manual_seed(0)
+            times = []
+            for _ in range(repeats + 1):
+                t0 = time.perf_counter()
+                render_view(tracer.trace, camera, gaussians, cfg, generator)
+                times.append(time.perf_counter() - t0)
+            out[key] = round(1.0 / float(np.median(times[1:])), 3)
+        return out
+    finally:
+        tracer.close()
+
+
 def region_mask(view, box_min, box_max) -> np.ndarray:
     """[H, W] bool: pixels whose ground-truth surface point (camera + ray x depth) lies in the world box."""
     points = view.camera.origin + view.camera.ray_directions() * view.buffers["depth"].astype(np.float64)

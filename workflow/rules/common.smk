@@ -6,7 +6,7 @@ import sys
 
 from snakemake.utils import min_version
 
-from stages.config import ConfigError, load_config
+from stages.config import CONFIGS, ConfigError, known, load_config
 
 min_version("9.0")
 
@@ -16,11 +16,26 @@ PY = sys.executable  # the interpreter running Snakemake runs the stages too
 @functools.cache
 def scene_config(scene):
     """Merged, validated config of one scene (command-line --config applies to every scene)."""
-    overrides = {k: v for k, v in config.items() if k not in ("scene", "scenes")}
+    overrides = {k: v for k, v in config.items() if k not in ("scene", "scenes", "batch")}
     return load_config(scene, overrides=overrides)
 
 
+def _batch_scenes(name):
+    """Scenes of configs/batches/<name>.yaml."""
+    import yaml
+
+    path = CONFIGS / "batches" / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"unknown batch {name!r}; known batches: {', '.join(known('batches'))} (configs/batches/)")
+    scenes = (yaml.safe_load(path.read_text()) or {}).get("scenes")
+    if not isinstance(scenes, list) or not scenes:
+        raise ConfigError(f"{path}: needs a non-empty list 'scenes'")
+    return [str(s) for s in scenes]
+
+
 def _scenes():
+    if config.get("batch"):
+        return _batch_scenes(str(config["batch"]))
     requested = config.get("scenes") or [config.get("scene") or load_config()["scene"]]
     if isinstance(requested, str):
         requested = [s for s in requested.split(",") if s]
@@ -35,6 +50,8 @@ except ConfigError as error:
     sys.exit(f"error: {error}")
 
 RESULTS = scene_config(SCENES[0])["results"]
+# a batch report when several scenes run together: named after the batch, else "scenes"
+BATCH = str(config["batch"]) if config.get("batch") else ("scenes" if len(SCENES) > 1 else None)
 
 
 def section(name):
@@ -50,4 +67,13 @@ def scene_targets(scenes):
         cfg = scene_config(scene)
         targets.append(f"{RESULTS}/{scene}/renders")
         targets.append(f"{RESULTS}/{scene}/metrics.json")
+        targets.append(f"{RESULTS}/{scene}/report.html")
+    if BATCH:
+        targets.append(f"{RESULTS}/batch_{BATCH}.html")
     return targets
+
+
+def report_inputs(wildcards):
+    """What a scene's report shows: the stages that ran for it."""
+    base = f"{RESULTS}/{wildcards.scene}"
+    return {"metrics": f"{base}/metrics.json", "renders": f"{base}/renders", "model": f"{base}/model/gaussians.ply"}

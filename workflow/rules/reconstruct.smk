@@ -37,7 +37,8 @@ rule render:
 
 
 rule evaluate:
-    """PSNR / SSIM per layer on the test split (linear and tonemapped), training time, Gaussian count."""
+    """PSNR / SSIM per layer on the test split (linear and tonemapped), training time, Gaussian count, peak memory,
+    render FPS at 1 spp."""
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
         renders=f"{RESULTS}/{{scene}}/renders",
@@ -47,8 +48,11 @@ rule evaluate:
     params:
         py=PY,
         cfg=section("evaluate"),
+        device=lambda wc: scene_config(wc.scene)["device"],
     log:
         f"{RESULTS}/{{scene}}/logs/evaluate.log",
+    threads: 2
     shell:
         "{params.py} -m stages.evaluate --capture {input.capture} --renders {input.renders} "
-        "--model $(dirname {input.model}) --config-json {params.cfg:q} --out {output} > {log} 2>&1"
+        "--model $(dirname {input.model}) --config-json {params.cfg:q} --device {params.device} "
+        "--threads {threads} --out {output} > {log} 2>&1"

@@ -1,0 +1,1 @@
+"""Reports: per-scene and batch HTML (stages.report.scene, stages.report.batch)."""

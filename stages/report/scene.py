@@ -1,0 +1,180 @@
+"""Per-scene HTML report: ground truth vs ours per layer, error maps, training curves, metrics, decisions."""
+
+from __future__ import annotations
+
+import base64
+import json
+from pathlib import Path
+
+import numpy as np
+
+from models.capture import read_capture, read_view_buffers
+
+from .figures import error_map, layer_uri, png_uri, training_curves
+from .html import esc, figure, fmt, hms, page, table
+
+COLOUR_LAYERS = ("final", "diffuse", "specular")
+GBUFFER_LAYERS = ("normal", "depth", "roughness", "f0")
+# error-map scale per layer (mean absolute error shown as full-bright)
+ERROR_SCALE = {"final": 0.25, "diffuse": 0.25, "specular": 0.25, "normal": 0.5, "roughness": 0.25, "f0": 0.25}
+
+
+def _json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _jsonl(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def metrics_tables(metrics: dict) -> str:
+    mean = metrics.get("mean", {})
+    rows = []
+    for layer in COLOUR_LAYERS:
+        rows.append([layer, mean.get(f"psnr_{layer}"), mean.get(f"ssim_{layer}", None),
+                     mean.get(f"psnr_{layer}_tonemapped"), mean.get(f"ssim_{layer}_tonemapped")])
+    out = table(["layer", "PSNR linear (dB)", "SSIM linear", "PSNR tonemapped (dB)", "SSIM tonemapped"],
+                [[r[0], *[fmt(v, 2 if i % 2 == 0 else 3) for i, v in enumerate(r[1:])]] for r in rows])
+    out += ("<p class=\"note\">Mean over the test views. Linear: radiance clamped to [0, 1]. Tonemapped: clamp, "
+            "then the sRGB transfer curve (as the PNGs). Ground-truth final = diffuse + specular (light sources "
+            f"seen directly are not part of the reconstruction). LPIPS: {esc(metrics.get('lpips', 'not computed'))}."
+            "</p>")
+    regions = sorted({k.split("_psnr_")[0] for k in mean if "_psnr_" in k})
+    if regions:
+        out += "<h3>Regions</h3>" + table(
+            ["region", "pixels (mean per view)", *[f"PSNR {layer}" for layer in COLOUR_LAYERS]],
+            [[r, fmt(mean.get(f"{r}_pixels"), 0), *[mean.get(f"{r}_psnr_{layer}") for layer in COLOUR_LAYERS]]
+             for r in regions])
+    views = metrics.get("views", {})
+    if views:
+        out += "<h3>Per view</h3>" + table(
+            ["view", *[f"PSNR {layer}" for layer in COLOUR_LAYERS]],
+            [[name, *[row.get(f"psnr_{layer}") for layer in COLOUR_LAYERS]] for name, row in views.items()])
+    return out
+
+
+def cost_table(metrics: dict) -> str:
+    res = metrics.get("fps_resolution")
+    rows = [
+        ["training time", hms(metrics.get("train_time_s")) + f" ({fmt(metrics.get('train_time_s'), 0)} s)"],
+        ["Gaussians", fmt(metrics.get("gaussians"))],
+        ["peak memory, training (MiB RSS)", fmt(metrics.get("train_peak_rss_mib"), 0)],
+        ["render FPS at 1 spp, full path" + (f" ({res[0]}x{res[1]})" if res else ""), fmt(metrics.get("fps_1spp"))],
+        ["render FPS, primary segment only", fmt(metrics.get("fps_primary"))],
+        ["render spp (test views, denoised)", fmt(metrics.get("render_spp"))],
+    ]
+    if metrics.get("train_peak_cuda_mib") is not None:
+        rows.append(["peak GPU memory, training (MiB)", fmt(metrics["train_peak_cuda_mib"], 0)])
+    seconds = metrics.get("render_seconds_per_view") or {}
+    if seconds:
+        rows.append(["render time per test view (s, mean)", fmt(float(np.mean(list(seconds.values()))))])
+    return table(["", "value"], rows, left=2)
+
+
+def what_ran(config: dict, scene_dir: Path) -> str:
+    kind = config.get("kind", "synthetic")
+    items = {
+        "synthetic": "<code>synth</code>: rendered by Mitsuba 3 with exact buffers (no <code>poses</code>, "
+                     "no <code>buffers</code>)",
+        "photos": "<code>poses</code>: COLMAP poses from the photos",
+        "capture": "capture given (no <code>synth</code>, no <code>poses</code>)",
+    }
+    lines = [items.get(kind, esc(kind))]
+    init = _json(scene_dir / "init" / "stage.json")
+    if init:
+        summary = init.get("summary", {})
+        source = summary.get("source", "depth + diffuse buffers")
+        lines.append(f"<code>init</code>: {fmt(summary.get('gaussians'))} Gaussians from {esc(source)} "
+                     f"({fmt(init.get('wall_time_s'), 1)} s)")
+    model = _json(scene_dir / "model" / "stage.json")
+    for d in model.get("decisions", []):
+        lines.append(f"<code>reconstruct</code>: {esc(d)}")
+    presets = ", ".join(config.get("presets", [])) or "none"
+    lines.append(f"presets: {esc(presets)}; device: {esc(config.get('device', 'cpu'))}")
+    return "<ul>" + "".join(f"<li>{x}</li>" for x in lines) + "</ul>"
+
+
+def view_images(capture_dir: Path, renders: Path, max_views: int = 3) -> str:
+    capture = read_capture(capture_dir, layers=["diffuse", "specular", "normal", "depth", "roughness", "f0"])
+    blocks = []
+    for view in capture.split("test")[:max_views]:
+        exr = renders / "test" / f"{view.name}.exr"
+        if not exr.is_file():
+            continue
+        pred = read_view_buffers(exr, view.camera.height, view.camera.width)
+        pred["final"] = pred.pop("rgb")
+        gt = dict(view.buffers)
+        if "diffuse" in gt and "specular" in gt:
+            gt["final"] = gt["diffuse"] + gt["specular"]
+        cells = ["<div></div><div><b>ground truth</b></div><div><b>ours</b></div><div><b>|error|</b></div>"]
+        for layer in (*COLOUR_LAYERS, *GBUFFER_LAYERS):
+            if layer not in pred or layer not in gt:
+                continue
+            p, t = pred[layer], gt[layer]
+            if layer == "depth":
+                scale = float(t[t > 0].max()) if (t > 0).any() else 1.0
+                p, t = p / scale, t / scale
+                err = error_map(p, t, 0.1)
+            else:
+                err = error_map(p * 0.5 + 0.5, t * 0.5 + 0.5, ERROR_SCALE[layer] / 2) if layer == "normal" \
+                    else error_map(p, t, ERROR_SCALE[layer])
+            show = "roughness" if layer == "depth" else layer  # depth already normalised by the gt scale
+            cells.append(f"<div><b>{layer}</b></div>"
+                         f"<div>{figure(layer_uri(show, t), f'{view.name} {layer} ground truth')}</div>"
+                         f"<div>{figure(layer_uri(show, p), f'{view.name} {layer} ours')}</div>"
+                         f"<div>{figure(png_uri(err), f'{view.name} {layer} error')}</div>")
+        blocks.append(f"<h3>{esc(view.name)}</h3><div class=\"grid\" style=\"grid-template-columns: 6em repeat(3, "
+                      f"max-content)\">{''.join(cells)}</div>")
+    if not blocks:
+        return "<p>No test renders.</p>"
+    return ("<p class=\"note\">Error maps: mean absolute error over channels (magma; bright = 0.25 for colour, F0 "
+            "and roughness, 0.5 for normals, 10% of the depth range for depth).</p>" + "".join(blocks))
+
+
+def edits_section(scene_dir: Path) -> str:
+    """Before / after / ground truth of each edit the edit stage wrote under <scene>/edits/<name>/."""
+    edit_dirs = sorted(p for p in (scene_dir / "edits").glob("*") if (p / "metrics.json").is_file()) \
+        if (scene_dir / "edits").is_dir() else []
+    if not edit_dirs:
+        return ""
+    rows, pics = [], []
+    for d in edit_dirs:
+        m = _json(d / "metrics.json")
+        mean = m.get("mean", m)
+        rows.append([d.name, mean.get("psnr_final"), mean.get("psnr_diffuse"), mean.get("psnr_specular"),
+                     m.get("unedited_psnr_final", mean.get("unedited_psnr_final"))])
+        for name, caption in (("before", "before"), ("after", "after (ours)"), ("truth", "ground truth")):
+            for png in sorted(d.glob(f"report/*_{name}.png"))[:1]:
+                pics.append(figure("data:image/png;base64," + base64.b64encode(png.read_bytes()).decode(),
+                                   f"{d.name}: {caption}"))
+    return ("<h2>Edits</h2>" + table(["edit", "PSNR final vs edited ground truth", "diffuse", "specular",
+                                      "unedited PSNR final"], rows) + "".join(pics))
+
+
+def scene_report(scene_dir: Path, config: dict | None = None) -> str:
+    """The HTML of one scene's report (results/<scene>/ holds capture, model, renders, metrics.json)."""
+    scene_dir = Path(scene_dir)
+    config = config or {}
+    name = config.get("scene", scene_dir.name)
+    metrics = _json(scene_dir / "metrics.json")
+    model = _json(scene_dir / "model" / "stage.json")
+    parts = [f"<h1>{esc(name)}</h1>",
+             f"<p class=\"note\">Run with <code>snakemake --cores 2 --config scene={esc(name)}</code>. "
+             f"Results folder <code>{esc(scene_dir)}</code>.</p>"]
+    parts.append("<h2>Metrics (test views)</h2>" + (metrics_tables(metrics) if metrics else "<p>No metrics.json.</p>"))
+    parts.append("<h2>Cost</h2>" + cost_table(metrics))
+    parts.append("<h2>What the scene required</h2>" + what_ran(config, scene_dir))
+    parts.append("<h2>Ground truth vs ours</h2>" + view_images(scene_dir / "capture", scene_dir / "renders"))
+    curves = training_curves(_jsonl(scene_dir / "model" / "train_log.jsonl"),
+                             warmup=(model.get("config") or {}).get("warmup"))
+    if curves:
+        parts.append("<h2>Training curves</h2><p class=\"note\">Dashed: end of the primary-only warm-up.</p>"
+                     f"<img class=\"plot\" src=\"{curves}\" alt=\"training curves\">")
+    gif = scene_dir / "renders" / "path" / "path.gif"
+    if gif.is_file():
+        uri = "data:image/gif;base64," + base64.b64encode(gif.read_bytes()).decode()
+        parts.append(f"<h2>Novel camera path</h2>{figure(uri, 'final, novel path')}")
+    parts.append(edits_section(scene_dir))
+    return page(f"{name}: report", "\n".join(parts))

@@ -1,0 +1,95 @@
+"""HTML reports: rendered by headless Chromium with every picture decoded; tables carry the measured numbers."""
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from stages.report.figures import error_map, pareto_front
+from tests.conftest import ROOT, snakemake
+
+
+def chromium_dom(html_path):
+    """The DOM after load, as headless Chromium (Debian package `chromium`, installed by .ci/setup) builds it."""
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    assert exe, "headless Chromium is needed for the report check: apt-get install chromium (.ci/setup does)"
+    proc = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", html_path.as_uri()],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def loaded_images(dom):
+    m = re.search(r'data-images-loaded="(\d+)/(\d+)"', dom)
+    assert m, "the report's load check did not run"
+    return int(m.group(1)), int(m.group(2))
+
+
+def test_scene_report_renders_its_images(tiny_demo):
+    _, results, _, _ = tiny_demo
+    report = results / "demo" / "report.html"
+    dom = chromium_dom(report)
+    ok, total = loaded_images(dom)
+    # 2 test views x (3 colour layers + 4 G-buffer layers) x (truth, ours, error) + the training curves
+    assert total >= 2 * 7 * 3 + 1 and ok == total
+    metrics = json.loads((results / "demo" / "metrics.json").read_text())
+    assert f"{metrics['mean']['psnr_final']:.2f}" in dom
+    assert f"{metrics['gaussians']:,}" in dom or str(metrics["gaussians"]) in dom
+    for decision in metrics["decisions"]:  # what the scene required / switched off
+        assert decision.replace("'", "&#x27;") in dom or decision in dom
+    assert "LPIPS" in dom and "training curves" in dom
+
+
+def test_batch_report_tables(tiny_demo, tmp_path):
+    _, results, _, _ = tiny_demo
+    other = tmp_path / "results" / "demo_copy"
+    shutil.copytree(results / "demo", other, ignore=shutil.ignore_patterns("capture", "renders", "checkpoints"))
+    out = tmp_path / "results" / "batch.html"
+    proc = subprocess.run([sys.executable, "-m", "stages.report", "batch", str(results / "demo"), str(other),
+                           "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    dom = chromium_dom(out)
+    assert "Table 1" in dom and "Table 2" in dom and "demo_copy" in dom
+    metrics = json.loads((results / "demo" / "metrics.json").read_text())["mean"]
+    for layer in ("diffuse", "specular", "final"):
+        assert dom.count(f"{metrics[f'psnr_{layer}']:.2f}") >= 2  # both columns of the two scenes
+    assert 'href="demo_copy/report.html"' in dom  # relative link to the scene's own report
+
+
+def test_batch_report_names_missing_scene(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "stages.report", "batch", str(tmp_path / "nowhere"), "--out",
+                           str(tmp_path / "b.html")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 1
+    assert f"no metrics.json in {tmp_path / 'nowhere'}" in proc.stderr
+
+
+def test_named_batch_plans_batch_report(tmp_path):
+    proc = snakemake(tmp_path, "-n", "--config", "batch=synthetic")
+    assert proc.returncode == 0, proc.stderr
+    assert "batch_report" in proc.stdout and "results/batch_synthetic.html" in proc.stdout
+    for scene in ("demo", "mirror_book", "chromeballs"):
+        assert f"results/{scene}/report.html" in proc.stdout
+    bad = snakemake(tmp_path, "-n", "--config", "batch=nope")
+    assert bad.returncode != 0
+    assert "error: unknown batch 'nope'; known batches: synthetic" in bad.stdout + bad.stderr
+
+
+def test_pareto_front_keeps_undominated_points():
+    pts = [{"t": 1, "q": 20}, {"t": 2, "q": 19}, {"t": 2, "q": 25}, {"t": 4, "q": 25}, {"t": 8, "q": 30},
+           {"t": 0.5, "q": 10}]
+    front = pareto_front(pts, "t", "q")
+    assert [(p["t"], p["q"]) for p in front] == [(0.5, 10), (1, 20), (2, 25), (8, 30)]
+
+
+def test_error_map_scale():
+    a = np.zeros((2, 2, 3), np.float32)
+    b = a.copy()
+    b[0, 0] = 0.25
+    m = error_map(b, a, vmax=0.25)
+    assert m.dtype == np.uint8 and m.shape == (2, 2, 3)
+    assert m[1, 1].sum() < 20  # exact: black end of magma
+    assert m[0, 0, 0] > 240 and m[0, 0, 1] > 200  # vmax: the bright (yellow) end
