@@ -3,6 +3,7 @@
 #   snakemake --cores 2 --config scene=demo preset=ci  tiny sizes (CI)
 #   snakemake --cores 2 --config batch=synthetic       three synthetic scenes + batch report
 #   snakemake --cores 2 benchmark_tracer               tracer benchmark table + JSON
+#   snakemake --cores 2 sweep_all --config scene=demo  speed/accuracy sweep (Pareto plot, presets)
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"

@@ -1,5 +1,7 @@
 """CLI: python -m stages.benchmark tracer [--sizes 50000,200000] [--res 128,256] [--threads 1,2]
-[--repeats 3] [--device cpu] [--torch-threads 1] [--out FILE.json] [--quick]"""
+[--repeats 3] [--device cpu] [--torch-threads 1] [--out FILE.json] [--quick]
+     python -m stages.benchmark sweep --capture results/demo/capture --scene demo --out results/sweep/demo
+[--iterations N] [--quick] (speed/accuracy sweep: see python -m stages.benchmark sweep --help)"""
 
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ def _ints(text: str) -> list[int]:
 
 def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p = argparse.ArgumentParser(prog="python -m stages.benchmark", description=__doc__)
-    p.add_argument("what", choices=["tracer"], help="which benchmark")
+    p.add_argument("what", choices=["tracer", "sweep"], help="which benchmark (sweep: see sweep --help)")
     p.add_argument("--sizes", type=_ints, help="numbers of Gaussians, e.g. 50000,200000")
     p.add_argument("--res", type=_ints, help="square resolutions, e.g. 128,256")
     p.add_argument("--threads", type=_ints, help="CPU thread counts to compare, e.g. 1,2")
@@ -54,7 +56,54 @@ def write_json_atomic(path: Path, data: dict) -> None:
         raise
 
 
+def sweep_main(argv) -> int:
+    from stages.benchmark.sweep import SweepGrid, config_for_sweep, format_table, run_sweep, sweep_report
+    from stages.cli import single_threaded_torch
+    from stages.config import ConfigError, load_config
+
+    p = argparse.ArgumentParser(
+        prog="python -m stages.benchmark sweep",
+        description="Speed/accuracy sweep on one scene: retrain with one knob changed at a time (max path length, "
+        "training resolution, voxel size, kernel p, transmittance threshold) and re-render the base model with "
+        "render-time knobs (spp with/without denoiser, path length, replay k, transmittance threshold). Prints a "
+        "table, writes <out>/sweep.json and <out>/report.html (Pareto plots, recommended settings).",
+    )
+    p.add_argument("--capture", required=True, type=Path, help="the scene's capture (results/<scene>/capture)")
+    p.add_argument("--scene", required=True, help="scene whose merged config is the base point")
+    p.add_argument("--preset", action="append", default=[], help="extra preset(s) on top of the scene's")
+    p.add_argument("--config-json", help="the scene's merged config as JSON (what Snakemake passes; "
+                   "overrides --scene/--preset)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="shorten every training run to this many steps (warm-up and pruning scaled alike)")
+    p.add_argument("--quick", action="store_true", help="one value per knob (smoke test, not a measurement)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    a = p.parse_args(argv)
+    single_threaded_torch()
+    from models.capture import CaptureError, read_capture
+
+    try:
+        config = json.loads(a.config_json) if a.config_json else load_config(a.scene, presets=a.preset)
+        capture = read_capture(a.capture)
+    except (CaptureError, ConfigError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    config = config_for_sweep(config, a.iterations)
+    grid = SweepGrid.quick() if a.quick else SweepGrid()
+    result = run_sweep(capture, config, grid, a.device, progress=lambda m: print(m, file=sys.stderr, flush=True))
+    result["scene"] = a.scene
+    result["iterations"] = config["reconstruct"].get("iterations")
+    print(format_table(result))
+    write_json_atomic(a.out / "sweep.json", result)
+    (a.out / "report.html").write_text(sweep_report(result, f"speed/accuracy sweep: {a.scene}"))
+    print(f"wrote {a.out / 'sweep.json'} and {a.out / 'report.html'}")
+    return 0
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["sweep"]:
+        return sweep_main(argv[1:])
     _, cfg, out = parse_args(argv)
     result = run_tracer_benchmark(cfg, progress=lambda m: print(m, file=sys.stderr, flush=True))
     print(format_table(result))

@@ -9,3 +9,32 @@ rule benchmark_tracer:
     threads: 2
     shell:
         "{params.py} -m stages.benchmark tracer --out {output} 2>&1 | tee {log}"
+
+
+rule sweep:
+    """Speed/accuracy sweep of one scene: table (log), sweep.json, report.html with the Pareto plots and the
+    recommended settings (target: sweep_all)."""
+    input:
+        capture=f"{RESULTS}/{{scene}}/capture",
+    output:
+        json=f"{RESULTS}/sweep/{{scene}}/sweep.json",
+        html=f"{RESULTS}/sweep/{{scene}}/report.html",
+    params:
+        py=PY,
+        cfg=lambda wc: json.dumps(scene_config(wc.scene), sort_keys=True),
+        iterations=lambda wc: scene_config(wc.scene)["sweep"]["iterations"],
+        quick=lambda wc: "--quick" if scene_config(wc.scene)["sweep"]["quick"] else "",
+        device=lambda wc: scene_config(wc.scene)["device"],
+    log:
+        f"{RESULTS}/sweep/{{scene}}/sweep.log",
+    threads: 2
+    shell:
+        "{params.py} -m stages.benchmark sweep --capture {input.capture} --scene {wildcards.scene} "
+        "--config-json {params.cfg:q} --iterations {params.iterations} {params.quick} --device {params.device} "
+        "--out $(dirname {output.json}) > {log} 2>&1"
+
+
+rule sweep_all:
+    """The sweep of every requested scene: snakemake --cores 2 sweep_all --config scene=demo"""
+    input:
+        [f"{RESULTS}/sweep/{s}/sweep.json" for s in SCENES],
