@@ -47,5 +47,7 @@ def chain_kernel(quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.v
     gq = wp.vec4(gw, gx, gy, gz)
     g_quats[i] = (gq - q * wp.dot(q, gq)) / norm
     g_log_scales[i] = gls
-    opacity = 1.0 / (1.0 + wp.exp(-opacity_logits[i]))
-    g_logits[i] = g_opacity[i] * opacity * (1.0 - opacity)
+    # dsigmoid/dx = s (1 - s) = e / (1 + e)^2 with e = exp(-|x|): 1 - s would round to 0 in
+    # float32 for x > ~16.6 (and lose ~6e-8 / (1 - s) relative precision before that)
+    e = wp.exp(-wp.abs(opacity_logits[i]))
+    g_logits[i] = g_opacity[i] * e / ((1.0 + e) * (1.0 + e))
