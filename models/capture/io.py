@@ -75,7 +75,13 @@ def read_capture(path: str | Path, layers: Iterable[str] | None = None, check: b
             from .paper_layout import read_paper_capture
 
             return read_paper_capture(path, layers=layers)
-        raise CaptureError(f"{path}: not a capture (no transforms.json)")
+        from .points import colmap_model_dir
+
+        if colmap_model_dir(path) is not None:
+            from .colmap_layout import read_colmap_capture
+
+            return read_colmap_capture(path, layers=layers)
+        raise CaptureError(f"{path}: not a capture (no transforms.json, transforms_train.json or COLMAP sparse/)")
     if layers is not None:
         layers = list(layers)
         unknown = [l for l in layers if l not in LAYERS]

@@ -1,4 +1,4 @@
-"""python -m stages.init: dense Gaussian initialisation of a capture -> <out>/points.ply."""
+"""python -m stages.init: Gaussian initialisation of a capture (dense from depth, else SfM points) -> <out>/points.ply."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from models.capture import CaptureError, read_capture
 from models.gaussians import write_ply
 from stages.cli import add_config_args, load_section
 from stages.config import ConfigError
-from stages.init.dense import InitConfig, dense_init
+from stages.init.dense import InitConfig
+from stages.init.sfm import initialise
 from stages.provenance import write_stage_json
 
 log = logging.getLogger("stages.init")
@@ -22,8 +23,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m stages.init",
         description="Dense initialisation: unproject the training views' depth at low resolution, colour from the "
-        "diffuse buffer, voxelise, one Gaussian per voxel with >= min_samples samples. Writes <out>/points.ply "
-        "(3DGS field names + extra fields) and <out>/stage.json.",
+        "diffuse buffer, voxelise, one Gaussian per voxel with >= min_samples samples. Without a depth buffer (or "
+        "with source: sfm): one Gaussian per SfM point of <capture>/points3D.ply or <capture>/sparse/. Writes "
+        "<out>/points.ply (3DGS field names + extra fields) and <out>/stage.json.",
     )
     add_config_args(p, "init")
     p.add_argument("--capture", required=True, type=Path, help="capture folder (transforms.json + images/)")
@@ -35,13 +37,15 @@ def main(argv: list[str] | None = None) -> int:
         config = InitConfig.from_dict(section)
         start = time.perf_counter()
         capture = read_capture(args.capture, layers=["depth", "diffuse", "mask"])
-        gaussians, summary = dense_init(capture, config)
+        gaussians, summary = initialise(capture, args.capture, config)
     except (CaptureError, ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     args.out.mkdir(parents=True, exist_ok=True)
     write_ply(args.out / "points.ply", gaussians)
-    log.info("dense init: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in summary.items()))
+    log.info("%s", summary.get("decision"))
+    log.info("init: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                   for k, v in summary.items() if k != "decision"))
     write_stage_json(args.out, "init", section, time.perf_counter() - start, extra={"summary": summary})
     return 0
 

@@ -32,12 +32,15 @@ class InitConfig:
     f0: float = 0.04  # initial base reflectance (grey)
     scale_factor: float = 1.0  # multiplies the 3-NN scale (real scenes in the reference: 0.1 init scale)
     seed: int = 0  # reserved for sampling choices; the recipe itself is deterministic
+    source: str = "auto"  # auto (depth + diffuse buffers if every training view has them, else SfM points) | depth | sfm
 
     @classmethod
     def from_dict(cls, d: dict) -> "InitConfig":
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown init option(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
+        if d.get("source", "auto") not in ("auto", "depth", "sfm"):
+            raise ValueError(f"init.source must be auto, depth or sfm, got {d['source']!r}")
         return cls(**d)
 
 
@@ -96,6 +99,24 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
             f"dense init: only {len(means)} voxels hold >= {config.min_samples} samples "
             f"(voxel {voxel:.4g}); lower voxel_fraction or raise resolution"
         )
+    gaussians, scale = gaussians_from_points(means, diffuse, config)
+    n = len(means)
+    summary = {
+        "views": len(train),
+        "samples": int(len(points)),
+        "scene_size": scene_size,
+        "voxel": voxel,
+        "voxels": int(n_vox),
+        "gaussians": int(n),
+        "median_scale": float(np.median(scale)),
+    }
+    return gaussians, summary
+
+
+def gaussians_from_points(means: np.ndarray, diffuse: np.ndarray, config: InitConfig) -> tuple[Gaussians, np.ndarray]:
+    """One isotropic Gaussian per point (the reference defaults): scale = sqrt(mean squared distance to the
+    3 nearest neighbours) x ``scale_factor``, opacity / roughness / F0 from ``config``, normal 0, identity
+    rotation, diffuse = ``diffuse`` (clamped >= 0). ``means``, ``diffuse``: [N, 3]. Returns (Gaussians, scale [N])."""
     dist, _ = cKDTree(means).query(means, k=4)  # first neighbour is the point itself
     scale = np.sqrt(np.mean(dist[:, 1:] ** 2, axis=1)) * config.scale_factor
     scale = np.maximum(scale, 1e-7)
@@ -112,13 +133,4 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
         roughness=torch.full((n,), config.roughness, **f32),
         f0=torch.full((n, 3), config.f0, **f32),
     )
-    summary = {
-        "views": len(train),
-        "samples": int(len(points)),
-        "scene_size": scene_size,
-        "voxel": voxel,
-        "voxels": int(n_vox),
-        "gaussians": int(n),
-        "median_scale": float(np.median(scale)),
-    }
-    return gaussians, summary
+    return gaussians, scale

@@ -2,6 +2,8 @@
 # against workflow/schemas/ before any rule runs, and derives what each scene needs.
 import functools
 import json
+import os
+import re
 import sys
 
 from snakemake.utils import min_version
@@ -50,8 +52,38 @@ except ConfigError as error:
     sys.exit(f"error: {error}")
 
 RESULTS = scene_config(SCENES[0])["results"]
+
 # a batch report when several scenes run together: named after the batch, else "scenes"
 BATCH = str(config["batch"]) if config.get("batch") else ("scenes" if len(SCENES) > 1 else None)
+
+
+def scenes_of_kind(kind):
+    """Wildcard regex of the scenes of one kind (the merged config for the scenes of this run, the scene file
+    for the others): rules writing the same output (synth, poses -> capture) never compete for a scene."""
+    from stages.config import read_yaml
+
+    names = [s for s in known("scenes")
+             if (scene_config(s) if s in SCENES else read_yaml(CONFIGS / "scenes" / f"{s}.yaml")).get("kind") == kind]
+    return "|".join(re.escape(n) for n in names) or "(?!)"
+
+
+def _check_photos(scene):
+    """A photos scene needs its photos before anything runs (unless its capture was already made)."""
+    from stages.poses.photos import missing_photos_message
+
+    cfg = scene_config(scene)
+    if cfg["kind"] != "photos" or os.path.isfile(f"{RESULTS}/{scene}/capture/transforms.json"):
+        return
+    poses = cfg["poses"]
+    if not poses.get("images"):
+        sys.exit(f"error: scene {scene!r}: poses.images is not set (the folder of photos)")
+    message = missing_photos_message(poses["images"], poses.get("min_images", 3), poses.get("download", ""))
+    if message:
+        sys.exit(f"error: scene {scene!r}: {message}")
+
+
+for _scene in SCENES:
+    _check_photos(_scene)
 
 
 def section(name):

@@ -1,0 +1,56 @@
+"""Settings of the ``poses`` stage: one dataclass, a comment per field."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+MATCHERS = ("exhaustive", "sequential", "vocab_tree")
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+@dataclass
+class PosesConfig:
+    images: str | None = None  # folder of photos, or a COLMAP folder (images/ + sparse/ [+ priors/]) that has poses
+    download: str = ""  # what to download and where to put it, shown when `images` is missing (scene configs)
+    matcher: str = "exhaustive"  # exhaustive (small sets, < ~300 photos) | sequential (video order) | vocab_tree
+    vocab_tree: str | None = None  # COLMAP vocabulary-tree file: required by vocab_tree; loop detection for sequential
+    sequential_overlap: int = 10  # sequential: match each photo with this many following ones
+    camera_model: str = "SIMPLE_RADIAL"  # COLMAP model of the (single, shared) camera before undistortion
+    max_image_size: int = 3200  # SIFT runs on photos downscaled to this long side
+    max_features: int = 8192  # SIFT features per photo
+    min_images: int = 3  # fewer photos than this is an error
+    allow_unregistered: bool = False  # false: photos the largest model misses are an error; true: dropped (logged)
+    test_every: int = 8  # every n-th registered photo (in name order) is a test view (LLFF hold); 0 = none
+    normalise: bool = True  # centre the cameras on the origin and scale them into target_radius
+    target_radius: float = 1.0  # largest camera distance from the centre after normalisation (scene units)
+    seed: int = 0  # COLMAP's random seed (RANSAC, mapper), for repeatable runs
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PosesConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown poses option(s) {sorted(unknown)}; known: {sorted(known)}")
+        cfg = cls(**d)
+        cfg.check()
+        return cfg
+
+    def check(self) -> None:
+        """Raise ValueError naming the bad option."""
+        if self.matcher not in MATCHERS:
+            raise ValueError(f"poses.matcher must be one of {', '.join(MATCHERS)}, got {self.matcher!r}")
+        if self.camera_model not in CAMERA_MODELS:
+            raise ValueError(f"poses.camera_model must be one of {', '.join(CAMERA_MODELS)}, got {self.camera_model!r}")
+        if self.matcher == "vocab_tree" and not self.vocab_tree:
+            raise ValueError("poses.matcher vocab_tree needs poses.vocab_tree: the path of a COLMAP vocabulary-tree "
+                             "file (it is not downloaded by this pipeline; get one matching COLMAP "
+                             "4.x, see https://colmap.github.io/faq.html, and give its path)")
+        for name in ("sequential_overlap", "max_image_size", "max_features", "min_images"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"poses.{name} must be >= 1, got {getattr(self, name)}")
+        if self.min_images < 2:
+            raise ValueError(f"poses.min_images must be >= 2 (two views are the least SfM needs), got {self.min_images}")
+        if self.test_every < 0:
+            raise ValueError(f"poses.test_every must be >= 0, got {self.test_every}")
+        if not self.target_radius > 0:
+            raise ValueError(f"poses.target_radius must be > 0, got {self.target_radius}")
