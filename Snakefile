@@ -2,13 +2,16 @@
 #   snakemake --cores 2 --config scene=demo            one scene end to end
 #   snakemake --cores 2 --config scene=demo preset=ci  tiny sizes (CI)
 #   snakemake --cores 2 --config batch=synthetic       three synthetic scenes + batch report
+#   snakemake --cores 2 edits --config scene=demo      the scene's named edits (+ ground truth metrics)
 #   snakemake --cores 2 benchmark_tracer               tracer benchmark table + JSON
 #   snakemake --cores 2 sweep_all --config scene=demo  speed/accuracy sweep (Pareto plot, presets)
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
+include: "workflow/rules/poses.smk"
 include: "workflow/rules/init.smk"
 include: "workflow/rules/reconstruct.smk"
+include: "workflow/rules/edit.smk"
 include: "workflow/rules/benchmark.smk"
 include: "workflow/rules/report.smk"
 

@@ -22,6 +22,8 @@ SCHEMAS = ROOT / "workflow" / "schemas"
 SECTION_SCHEMAS = {
     "synth": "synth.schema.yaml", "init": "init.schema.yaml",
     "reconstruct": "reconstruct.schema.yaml", "render": "render.schema.yaml",
+    "poses": "poses.schema.yaml",
+    "edits": "edit.schema.yaml",
 }
 
 

@@ -31,7 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     src.add_argument("--scene", help="scene name: loads configs/scenes/NAME.yaml (merged config)")
     src.add_argument("--config-json", help="the synth: section as JSON (as Snakemake passes it)")
     p.add_argument("--edits", nargs="*", default=[], metavar="NAME",
-                   help="named edit lists from the scene config's 'edits:' mapping, applied in order (needs --scene)")
+                   help="named edits of the scene config's 'edits:' mapping (their ground_truth lists), applied in order "
+                   "(needs --scene)")
     p.add_argument("--edits-json", help="an edit list as JSON (works with --config-json too)")
     p.add_argument("--out", required=True, type=Path, help="capture output directory")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -53,7 +54,11 @@ def main(argv: list[str] | None = None) -> int:
             for e in args.edits:
                 if e not in named:
                     raise ValueError(f"scene {args.scene!r}: unknown edit list {e!r} (known: {', '.join(named) or 'none'})")
-                edits += list(named[e])
+                # a named edit of the edit stage (stages/edit/spec.py): its synth side is 'ground_truth'
+                gt = named[e].get("ground_truth") if isinstance(named[e], dict) else named[e]
+                if not gt:
+                    raise ValueError(f"scene {args.scene!r}: edit {e!r} has no ground_truth (synth edit list)")
+                edits += list(gt)
         else:
             if args.edits:
                 raise ValueError("--edits NAME needs --scene (with --config-json pass --edits-json)")

@@ -9,6 +9,7 @@ An edit list is a list of mappings, each with ``op`` and ``object`` (an object n
     {op: set_roughness, object: NAME, value: R}              # principled / conductor; 0 = smooth conductor
     {op: set_f0, object: NAME, value: F | [r, g, b]}
     {op: delete, object: NAME}
+    {op: set_material, object: NAME, material: {type: ..., ...}}  # replaces the material (as in objects:)
 
 ``set_f0`` by material (the F0 buffer is (1 - metallic) 0.08 specular + metallic base_color):
 
@@ -27,12 +28,13 @@ import dataclasses
 import numpy as np
 
 from .mitsuba_scene import conductor_f0
-from .spec import ObjectSpec, SynthSpec, _keys, _num, _vec
+from .spec import ObjectSpec, SynthSpec, _keys, _num, _vec, parse_material
 
-OPS = ("translate", "rotate", "scale", "duplicate", "set_roughness", "set_f0", "delete")
+OPS = ("translate", "rotate", "scale", "duplicate", "set_roughness", "set_f0", "delete", "set_material")
 _OP_KEYS = {
     "translate": {"offset"}, "rotate": {"axis", "angle"}, "scale": {"factor"},
     "duplicate": {"new_name", "offset"}, "set_roughness": {"value"}, "set_f0": {"value"}, "delete": set(),
+    "set_material": {"material"},
 }
 
 
@@ -106,6 +108,9 @@ def apply_edit(spec: SynthSpec, edit: dict, where: str = "edit") -> SynthSpec:
         return _replace_object(spec, obj.name, new)
     if op == "set_f0":
         return _replace_object(spec, obj.name, _set_f0(obj, edit["value"], where))
+    if op == "set_material":
+        material = parse_material(edit["material"], f"{where}.material", spec.textures)
+        return _replace_object(spec, obj.name, dataclasses.replace(obj, material=material))
     # delete
     if obj.emitter is not None and sum(o.emitter is not None for o in spec.objects) == 1:
         raise ValueError(f"{where}: cannot delete {obj.name!r}, the scene's only light")

@@ -26,16 +26,18 @@ def scene_views(spec: SynthSpec) -> list[tuple[str, str, object]]:
     return out
 
 
-def render_spec(spec: SynthSpec, *, progress: bool = True, scene_name: str | None = None) -> Capture:
-    """Render all views of ``spec`` into an in-memory Capture."""
+def render_spec(spec: SynthSpec, *, progress: bool = True, scene_name: str | None = None,
+                splits: tuple[str, ...] | None = None) -> Capture:
+    """Render the views of ``spec`` (only those of ``splits`` if given) into an in-memory Capture. A view's
+    sampler seed depends on its place among all views, so a subset renders exactly as in the full capture."""
     import drjit
     import mitsuba
 
     scene, materials = load_scene(spec)
     views, timings = [], {}
     t_all = time.perf_counter()
-    todo = scene_views(spec)
-    for i, (name, split, cam) in enumerate(tqdm(todo, desc="synth", unit="view", disable=not progress)):
+    todo = [(i, v) for i, v in enumerate(scene_views(spec)) if splits is None or v[1] in splits]
+    for i, (name, split, cam) in tqdm(todo, desc="synth", unit="view", disable=not progress):
         t0 = time.perf_counter()
         buffers = render_view(scene, materials, cam, spec.spp, seed=spec.seed * 100_003 + i,
                               max_depth=spec.max_depth, spp_chunk=spec.spp_chunk)
@@ -60,11 +62,11 @@ def render_spec(spec: SynthSpec, *, progress: bool = True, scene_name: str | Non
 
 
 def render_capture(synth_cfg: dict, out_dir: Path, *, edits: list[dict] | None = None, progress: bool = True,
-                   scene_name: str | None = None) -> Capture:
+                   scene_name: str | None = None, splits: tuple[str, ...] | None = None) -> Capture:
     """Parse the ``synth:`` section, apply ``edits`` (a list of edit ops), render every view with a
     progress bar and write the capture to ``out_dir`` (atomically). Returns the Capture."""
     spec = apply_edits(parse_spec(synth_cfg), edits)
-    capture = render_spec(spec, progress=progress, scene_name=scene_name)
+    capture = render_spec(spec, progress=progress, scene_name=scene_name, splits=splits)
     if edits:
         capture.meta.extra["edits"] = edits
     write_capture(capture, Path(out_dir))
