@@ -64,6 +64,31 @@ def test_flat_mirror_gives_mirrored_image(backend):
     assert torch.allclose(out.primary.depth.reshape(-1) / opacity, t_plane, rtol=1e-5)
 
 
+@pytest.mark.parametrize("backend", ["reference", "warp"])
+def test_truncated_mirror_reflects_from_its_surface(backend):
+    """A mirror whose rays stop early (T < threshold with hits left): the tracer's tail rule already
+    normalised depth / roughness / F0, so the reflection starts ON the mirror (dividing by 1 - T again put
+    it ~1% of the depth behind the surface, under the mirror: the reflection came back black)."""
+    dtype = torch.float64 if backend == "reference" else torch.float32
+    g = scene(dtype=dtype)
+    logit = math.log(0.991 / 0.009)  # T = 0.009 after the mirror: below the 0.01 threshold
+    extra = {k: v[:1].clone() for k, v in g.params().items()}
+    extra["means"][0, 2] = -1e-3  # a second mirror layer just below: a hit left unblended
+    g = Gaussians(**{k: torch.cat([v[:1], extra[k], v[1:]]) for k, v in g.params().items()})
+    g.opacity_logits[:2] = logit
+    o, d = camera_rays(dtype=dtype)
+    fn = reference_fn() if backend == "reference" else Tracer(TracerConfig(num_threads=1)).trace
+    out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2), torch.Generator().manual_seed(1))
+    assert torch.all(out.primary.hit_count > out.primary.blended_count)  # every primary ray truncated
+    t_plane = -o[:, 2] / d[:, 2]
+    hit = o + d * t_plane[:, None]
+    d_ref = d * torch.tensor([1.0, 1.0, -1.0], dtype=dtype)
+    obj = Gaussians(**{k: v[2:] for k, v in g.params().items()})
+    expected = reference_trace(hit, d_ref, obj).diffuse.to(dtype)
+    assert expected.amax() > 0.3
+    assert (out.specular - expected).abs().max() < 2e-3
+
+
 def test_path_length_one_and_short_normals_stop():
     o, d = camera_rays(6)
     gen = torch.Generator().manual_seed(0)

@@ -101,8 +101,9 @@ def trace_paths(
         wo = -d
         # a vertex seen from behind reflects as seen from the front (accumulated normals can point away)
         n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)
-        # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T)
-        opacity = (1.0 - seg.transmittance.detach().reshape(-1, 1)).clamp_min(1e-6)
+        # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T), except
+        # truncated rays, which the tracer's tail rule already normalised
+        opacity = seg.opacity()
         rough_raw = seg.roughness.detach().reshape(-1, 1) / opacity
         rough = rough_raw.reshape(-1).clamp(config.min_roughness, 1.0)
         f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)

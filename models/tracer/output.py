@@ -37,6 +37,14 @@ class TraceOutput:
     replay_capacity: int = 0                    # replay slots per ray used by the final launch
     extra: dict = field(default_factory=dict)
 
+    def opacity(self) -> torch.Tensor:
+        """[R, 1] accumulated opacity the layers are blended over (detached): 1 for truncated rays, whose
+        layers the tail rule already normalised, else 1 - T_end. ``layer / opacity()`` is the value
+        conditional on the ray terminating (never divided twice)."""
+        truncated = (self.hit_count > self.blended_count).reshape(-1, 1)
+        opacity = (1.0 - self.transmittance.detach().reshape(-1, 1)).clamp_min(1e-6)
+        return torch.where(truncated, torch.ones_like(opacity), opacity)
+
     def layer(self, name: str) -> torch.Tensor:
         """One differentiable layer as [R, C]."""
         if name not in LAYERS:

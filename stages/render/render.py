@@ -56,7 +56,7 @@ def render_view(trace_fn, camera: Camera, gaussians: Gaussians, config: RenderCo
             for i, b in enumerate(out.bounces):
                 bounces[i] += b
         n = max(config.spp, 1)
-        opacity = (1 - primary.transmittance.reshape(-1, 1)).clamp_min(1e-6)
+        opacity = primary.opacity()
         chunk = {
             "diffuse": primary.diffuse,
             "specular_noisy": spec / n,
