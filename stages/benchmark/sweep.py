@@ -43,7 +43,7 @@ class SweepGrid:
     path_length: list[int] = field(default_factory=lambda: [1, 2, 3])
     train_downsample: list[int] = field(default_factory=lambda: [2])  # training resolution = full / factor
     voxel_scale: list[float] = field(default_factory=lambda: [2.0, 4.0])  # voxel size x factor (fewer Gaussians)
-    kernel_p: list[int] = field(default_factory=lambda: [1, 2])
+    kernel_p: list[int] = field(default_factory=lambda: [2])
     train_transmittance: list[float] = field(default_factory=lambda: [0.05])
     spp: list[int] = field(default_factory=lambda: [1, 4, 16, 64, 128])
     render_k: list[int] = field(default_factory=lambda: [4, 8, 32])
