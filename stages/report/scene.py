@@ -134,23 +134,46 @@ def view_images(capture_dir: Path, renders: Path, max_views: int = 3) -> str:
 
 
 def edits_section(scene_dir: Path) -> str:
-    """Before / after / ground truth of each edit the edit stage wrote under <scene>/edits/<name>/."""
-    edit_dirs = sorted(p for p in (scene_dir / "edits").glob("*") if (p / "metrics.json").is_file()) \
-        if (scene_dir / "edits").is_dir() else []
+    """Each edit of <scene>/edits/<name>/ (the edit stage): PSNR of the edited render against the Mitsuba
+    re-render of the same edit, next to the unedited model's PSNR, and before / after / ground truth of the
+    first test view."""
+    root = scene_dir / "edits"
+    edit_dirs = sorted(p for p in root.glob("*") if (p / "metrics.json").is_file()) if root.is_dir() else []
     if not edit_dirs:
         return ""
-    rows, pics = [], []
+    rows, blocks = [], []
     for d in edit_dirs:
         m = _json(d / "metrics.json")
-        mean = m.get("mean", m)
-        rows.append([d.name, mean.get("psnr_final"), mean.get("psnr_diffuse"), mean.get("psnr_specular"),
-                     m.get("unedited_psnr_final", mean.get("unedited_psnr_final"))])
-        for name, caption in (("before", "before"), ("after", "after (ours)"), ("truth", "ground truth")):
-            for png in sorted(d.glob(f"report/*_{name}.png"))[:1]:
-                pics.append(figure("data:image/png;base64," + base64.b64encode(png.read_bytes()).decode(),
-                                   f"{d.name}: {caption}"))
-    return ("<h2>Edits</h2>" + table(["edit", "PSNR final vs edited ground truth", "diffuse", "specular",
-                                      "unedited PSNR final"], rows) + "".join(pics))
+        ed, un, ch = m.get("edited_vs_truth", {}), m.get("unedited_vs_truth", {}), m.get("changed_region", {})
+        caught = ", ".join(str(op.get("selected")) for op in m.get("ops", []))
+        rows.append([d.name, caught, ed.get("psnr_final"), ed.get("psnr_diffuse"), ed.get("psnr_specular"),
+                     un.get("psnr_final"), fmt(100 * ch["changed_fraction"], 1) if "changed_fraction" in ch else "–",
+                     ch.get("edited_psnr_final"), ch.get("unedited_psnr_final")])
+        exrs = sorted((d / "renders" / "test").glob("*.exr"))
+        if not exrs:
+            continue
+        view = exrs[0].stem
+        cells = []
+        for label, path, key in (("before", scene_dir / "renders" / "test" / f"{view}.exr", "rgb"),
+                                 ("after (ours)", exrs[0], "rgb"),
+                                 ("ground truth", d / "truth" / "images" / f"{view}.exr", None)):
+            if not path.is_file():
+                continue
+            from models.capture.exr import read_exr_channels
+
+            ch_ = read_exr_channels(path)
+            if key == "rgb" or not all(f"diffuse.{c}" in ch_ for c in "RGB"):
+                img = np.stack([ch_[c] for c in "RGB"], -1)
+            else:  # ground truth final = diffuse + specular (lights seen directly are not reconstructed)
+                img = np.stack([ch_[f"diffuse.{c}"] + ch_[f"specular.{c}"] for c in "RGB"], -1)
+            cells.append(figure(layer_uri("final", img), f"{d.name} {view}: {label}"))
+        blocks.append("<div>" + "".join(cells) + "</div>")
+    head = ["edit", "Gaussians selected", "PSNR final vs edited truth", "diffuse", "specular",
+            "unedited PSNR final", "changed pixels %", "changed: PSNR final ours", "changed: unedited"]
+    return ("<h2>Edits</h2><p class=\"note\">Each edit is applied to the trained model and, for synthetic "
+            "scenes, to the Mitsuba scene (re-rendered as ground truth). \"Changed\" pixels: where the two "
+            "ground truths differ; there the unedited render is the do-nothing baseline.</p>"
+            + table(head, rows) + "".join(blocks))
 
 
 def scene_report(scene_dir: Path, config: dict | None = None) -> str:

@@ -105,7 +105,18 @@ def scene_targets(scenes):
     return targets
 
 
+def edit_targets(scene):
+    """Per named edit of the scene: metrics.json where a ground truth can be rendered, else the edited renders."""
+    cfg = scene_config(scene)
+    return [f"{RESULTS}/{scene}/edits/{name}/"
+            + ("metrics.json" if cfg["kind"] == "synthetic" and edit.get("ground_truth") else "renders")
+            for name, edit in (cfg.get("edits") or {}).items()]
+
+
 def report_inputs(wildcards):
-    """What a scene's report shows: the stages that ran for it."""
+    """What a scene's report shows: the stages that ran for it (its named edits when edits_in_all is on)."""
     base = f"{RESULTS}/{wildcards.scene}"
-    return {"metrics": f"{base}/metrics.json", "renders": f"{base}/renders", "model": f"{base}/model/gaussians.ply"}
+    inputs = {"metrics": f"{base}/metrics.json", "renders": f"{base}/renders", "model": f"{base}/model/gaussians.ply"}
+    if scene_config(wildcards.scene).get("edits_in_all"):
+        inputs["edits"] = edit_targets(wildcards.scene)
+    return inputs

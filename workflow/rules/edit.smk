@@ -14,12 +14,7 @@ rule edits:
     ground truth for synthetic scenes)."""
     input:
         # per scene and edit: metrics.json where a ground truth can be rendered, else the edited renders
-        lambda wc: [
-            f"{RESULTS}/{scene}/edits/{name}/"
-            + ("metrics.json" if scene_config(scene)["kind"] == "synthetic" and edit.get("ground_truth") else "renders")
-            for scene in SCENES
-            for name, edit in (scene_config(scene).get("edits") or {}).items()
-        ],
+        lambda wc: [t for scene in SCENES for t in edit_targets(scene)],
 
 
 rule edit:
