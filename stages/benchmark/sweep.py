@@ -16,7 +16,6 @@ better in final PSNR) gives the recommended settings.
 from __future__ import annotations
 
 import copy
-import json
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -277,9 +276,3 @@ def config_for_sweep(config: dict, iterations: int | None) -> dict:
         rec["checkpoint_every"] = iterations
     return config
 
-
-def write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    tmp.replace(path)
