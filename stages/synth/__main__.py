@@ -1,4 +1,6 @@
-"""CLI: ``python -m stages.synth (--scene NAME | --config-json JSON) [--edits NAME...] --out DIR``."""
+"""CLI: ``python -m stages.synth (--scene NAME | --config-json JSON) [--edits NAME...] --out DIR``, and
+``python -m stages.synth procedural --count N --seed S --out DIR [--resolution W H] [--views V] [--spp P]``
+(random training rooms, ``procedural.py``)."""
 
 from __future__ import annotations
 
@@ -25,7 +27,37 @@ def _load_scene_config(scene: str) -> dict:
     return yaml.safe_load(path.read_text()) or {}
 
 
+def procedural_main(argv: list[str]) -> int:
+    """``python -m stages.synth procedural ...``: render random rooms (resumable)."""
+    p = argparse.ArgumentParser(prog="python -m stages.synth procedural",
+                                description="Render N random rooms into DIR/scene_0000, ... (skips finished ones).")
+    p.add_argument("--count", type=int, required=True, help="number of scenes")
+    p.add_argument("--seed", type=int, default=0, help="scene i uses seed S + i (default 0)")
+    p.add_argument("--out", type=Path, required=True, help="output folder of the capture folders")
+    p.add_argument("--resolution", type=int, nargs=2, default=(64, 64), metavar=("W", "H"))
+    p.add_argument("--views", type=int, default=8, help="cameras per scene (default 8)")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    args = p.parse_args(argv)
+
+    from .procedural import render_procedural
+
+    try:
+        report = render_procedural(args.out, args.count, args.seed, resolution=tuple(args.resolution),
+                                   views=args.views, spp=args.spp, progress=not args.no_progress)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    total = sum(report["seconds"].values())
+    print(f"rendered {len(report['rendered'])} scene(s) in {total:.1f} s, skipped {len(report['skipped'])} "
+          f"already complete, into {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "procedural":
+        return procedural_main(argv[1:])
     p = argparse.ArgumentParser(prog="python -m stages.synth", description=__doc__)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scene", help="scene name: loads configs/scenes/NAME.yaml (merged config)")

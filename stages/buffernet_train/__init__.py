@@ -1,0 +1,1 @@
+"""Buffer-network training stage (ARCHITECTURE.md: buffernet-train)."""

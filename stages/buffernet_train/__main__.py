@@ -1,0 +1,132 @@
+"""python -m stages.buffernet_train (train | evaluate | cost): the buffer network's training, its per-buffer
+accuracy against trivial baselines, and the cost of batched vs per-prompt inference."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+from stages.cli import single_threaded_torch
+from stages.provenance import write_stage_json
+
+
+def _train(args: argparse.Namespace) -> int:
+    from stages.buffernet_train.config import TrainConfig
+    from stages.buffernet_train.train import train
+
+    overrides = {f.name: getattr(args, f.name) for f in fields(TrainConfig)
+                 if getattr(args, f.name, None) is not None}
+    start = time.perf_counter()
+    try:
+        cfg = TrainConfig.from_dict(overrides)
+        final = train(cfg, resume=not args.fresh, progress=not args.no_progress)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    write_stage_json(cfg.out, "buffernet-train", cfg.to_dict(), time.perf_counter() - start)
+    print(f"saved {final}  (load with BufferNetPipeline.from_pretrained('{final}'))")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from models.buffernet import BufferNetPipeline
+    from stages.buffernet_train.data import make_readers
+    from stages.buffernet_train.evaluate import evaluate_network, format_rows
+
+    try:
+        pipe = BufferNetPipeline.from_pretrained(args.model)
+        readers = make_readers(args.data, cache=False)
+    except (ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    samples = (r[i] for r in readers for i in range(len(r)))
+    rows = evaluate_network(pipe, list(samples) if args.limit is None else list(samples)[: args.limit],
+                            resolution=args.resolution, progress=not args.no_progress)
+    print(format_rows(rows))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"model": str(args.model), "data": args.data, "buffers": rows},
+                                             indent=1))
+    return 0
+
+
+def _cost(args: argparse.Namespace) -> int:
+    """Seconds per image, all buffers batched vs one run per buffer (median of ``repeat``)."""
+    import numpy as np
+    import torch
+
+    from models.buffernet import BufferNetPipeline
+    from models.buffernet.build import build_pipeline
+
+    pipe = build_pipeline(args.model) if args.model in ("tiny", "small") else BufferNetPipeline.from_pretrained(args.model)
+    pipe = pipe.to(args.device)
+    rgb = np.random.default_rng(0).random((args.size, args.size, 3), dtype=np.float32)
+    table = []
+    for batched in (True, False):
+        pipe.predict(rgb, batched=batched)  # warm-up
+        times = []
+        for _ in range(args.repeat):
+            if args.device == "cuda":
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            pipe.predict(rgb, batched=batched)
+            if args.device == "cuda":
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t)
+        table.append({"mode": "batched (1 forward)" if batched else "per prompt (6 forwards)",
+                      "seconds": float(np.median(times))})
+    ratio = table[1]["seconds"] / table[0]["seconds"]
+    print(f"{'mode':<26} {'s / image':>10}   ({args.model}, {args.size}x{args.size}, {args.device})")
+    for r in table:
+        print(f"{r['mode']:<26} {r['seconds']:>10.4f}")
+    print(f"per-prompt / batched = {ratio:.2f}x")
+    if args.out:
+        Path(args.out).write_text(json.dumps({"model": args.model, "size": args.size, "device": args.device,
+                                              "rows": table, "speedup": ratio}, indent=1))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m stages.buffernet_train", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train", help="train (or resume) a buffer network; saves <out>/pipeline",
+                       description="Masked latent MSE, AdamW, exponential decay, gradient checkpointing; "
+                       "checkpoints every --checkpoint-every steps and resumes from the latest unless --fresh. "
+                       "Multi-GPU: launch with `accelerate launch -m stages.buffernet_train train ...`.")
+    t.add_argument("--data", action="append", help="KIND:DIR, repeatable: hypersim:DIR, interiorverse:DIR[:split], "
+                   "captures:DIR (one capture or a folder of captures, e.g. from `python -m stages.synth procedural`)")
+    t.add_argument("--init", help="tiny | small (random weights, SD2 architecture; default small) or a local folder: "
+                   "stable-diffusion-2 (diffusers layout) or a saved buffer network")
+    t.add_argument("--out", help="output folder (default results/buffernet)")
+    for name, typ in (("iterations", int), ("batch_size", int), ("grad_accum", int), ("size", int), ("lr", float),
+                      ("lr_final", float), ("pixel_loss", float), ("vae_steps", int), ("vae_lr", float),
+                      ("checkpoint_every", int), ("seed", int), ("log_every", int)):
+        t.add_argument(f"--{name.replace('_', '-')}", dest=name, type=typ, help=f"see TrainConfig.{name}")
+    t.add_argument("--mixed-precision", dest="mixed_precision", choices=("no", "fp16", "bf16"))
+    t.add_argument("--no-gradient-checkpointing", dest="gradient_checkpointing", action="store_const", const=False)
+    t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints in --out")
+    t.add_argument("--no-progress", action="store_true")
+    e = sub.add_parser("evaluate", help="per-buffer accuracy vs trivial baselines on held-out data")
+    e.add_argument("--model", required=True, help="a saved buffer network folder (<out>/pipeline)")
+    e.add_argument("--data", action="append", required=True, help="KIND:DIR as for train (held-out data)")
+    e.add_argument("--resolution", type=int, help="process at this long side (default: the image's own)")
+    e.add_argument("--limit", type=int, help="at most this many images")
+    e.add_argument("--out", help="write the table as JSON here")
+    e.add_argument("--no-progress", action="store_true")
+    c = sub.add_parser("cost", help="inference seconds per image: all buffers batched vs one pass per buffer")
+    c.add_argument("--model", default="small", help="tiny | small | a saved buffer network folder")
+    c.add_argument("--size", type=int, default=128)
+    c.add_argument("--repeat", type=int, default=5)
+    c.add_argument("--device", default="cpu")
+    c.add_argument("--out")
+    args = p.parse_args(argv)
+    single_threaded_torch()
+    return {"train": _train, "evaluate": _evaluate, "cost": _cost}[args.command](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
