@@ -5,10 +5,12 @@
 #   snakemake --cores 2 edits --config scene=demo      the scene's named edits (+ ground truth metrics)
 #   snakemake --cores 2 benchmark_tracer               tracer benchmark table + JSON
 #   snakemake --cores 2 sweep_all --config scene=demo  speed/accuracy sweep (Pareto plot, presets)
+#   snakemake --cores 2 buffernet                      train + evaluate the small buffer network
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/poses.smk"
+include: "workflow/rules/buffers.smk"
 include: "workflow/rules/init.smk"
 include: "workflow/rules/reconstruct.smk"
 include: "workflow/rules/edit.smk"

@@ -59,6 +59,20 @@ def read_yaml(path: Path) -> dict:
     return data
 
 
+def scene_file(scene: str, _seen: tuple = ()) -> dict:
+    """configs/scenes/<scene>.yaml; a scene file with ``extends: <other>`` starts from that scene's file
+    (its sections merged under this one's, recursively)."""
+    data = read_yaml(CONFIGS / "scenes" / f"{scene}.yaml")
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if base in _seen + (scene,):
+        raise ConfigError(f"configs/scenes/{scene}.yaml: 'extends: {base}' makes a cycle")
+    if base not in known("scenes"):
+        raise ConfigError(f"configs/scenes/{scene}.yaml: extends unknown scene {base!r}")
+    return deep_merge(scene_file(base, _seen + (scene,)), data)
+
+
 def load_config(scene: str | None = None, presets: Iterable[str] = (), overrides: dict | None = None) -> dict:
     """The validated, merged config of ``scene``. ``overrides`` (e.g. Snakemake's --config) win last;
     their ``scene``/``presets`` keys are honoured too."""
@@ -68,7 +82,7 @@ def load_config(scene: str | None = None, presets: Iterable[str] = (), overrides
     scenes = known("scenes")
     if scene not in scenes:
         raise ConfigError(f"unknown scene {scene!r}; known scenes: {', '.join(scenes)}")
-    config = deep_merge(config, read_yaml(CONFIGS / "scenes" / f"{scene}.yaml"))
+    config = deep_merge(config, scene_file(scene))
     # presets named by the scene file come first, then those of the caller / command line
     preset_list = _as_list(config.get("presets", [])) + list(presets)
     preset_list += _as_list(overrides.pop("presets", [])) + _as_list(overrides.pop("preset", []))

@@ -60,3 +60,23 @@ def fit_scale_shift(d: np.ndarray, z: np.ndarray, *, threshold: float = 0.05, it
     a, b = np.polyfit(d[best], z[best], 1) if np.ptp(d[best]) > 1e-12 else np.polyfit(d, z, 1)
     inliers = int((np.abs(a * d + b - z) < tol).sum())
     return DepthFit(scale=float(a), shift=float(b), inliers=inliers, samples=int(len(d)))
+
+
+def align_to_points(rel, camera, xyz: np.ndarray, *, seed: int = 0, where: str = "depth") -> tuple[np.ndarray, DepthFit]:
+    """Relative planar depth ``rel`` ``[H, W]`` of ``camera`` (a ``Camera``) aligned to world points ``xyz``
+    ``[N, 3]`` (SfM points): the points in front of the camera are projected, ``fit_scale_shift`` maps ``rel``
+    to their z-depth (points hidden behind other surfaces are RANSAC outliers), and the metric z becomes the
+    capture format's distance along the ray. Returns (``[H, W, 1]`` float32 distance, 0 where the fitted z is
+    not positive; the fit)."""
+    pc = (np.asarray(xyz, np.float64) - camera.origin) @ camera.rotation  # world -> OpenGL camera space
+    z = -pc[:, 2]
+    front = z > 1e-9
+    u = camera.fl_x * pc[front, 0] / z[front] + camera.cx
+    v = -camera.fl_y * pc[front, 1] / z[front] + camera.cy
+    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    col, row = np.floor(u[inside]).astype(int), np.floor(v[inside]).astype(int)
+    fit = fit_scale_shift(rel[row, col], z[front][inside], seed=seed, where=where)
+    zz = fit.scale * np.asarray(rel, np.float64) + fit.shift
+    ray_len = np.linalg.norm(camera.camera_directions(), axis=-1)
+    dist = np.where(zz > 0, zz * ray_len, 0.0)
+    return dist[:, :, None].astype(np.float32), fit

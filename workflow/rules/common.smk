@@ -120,3 +120,21 @@ def report_inputs(wildcards):
     if scene_config(wildcards.scene).get("edits_in_all"):
         inputs["edits"] = edit_targets(wildcards.scene)
     return inputs
+
+
+def predicts_buffers(scene):
+    """The scene's config asks the buffer network for some buffers (rule buffers runs)."""
+    return bool((scene_config(scene).get("buffers") or {}).get("predict"))
+
+
+def training_capture(wildcards):
+    """What init and reconstruct train on: the capture, or the capture with network-predicted buffers."""
+    base = f"{RESULTS}/{wildcards.scene}"
+    return f"{base}/capture_net" if predicts_buffers(wildcards.scene) else f"{base}/capture"
+
+
+def buffernet_model(scene):
+    """buffers.model: a bare name = a network this workflow trains (results/buffernet/<name>/pipeline), else a
+    path to a saved buffer network."""
+    model = str(scene_config(scene)["buffers"]["model"])
+    return f"{RESULTS}/buffernet/{model}/pipeline" if "/" not in model else model

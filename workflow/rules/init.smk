@@ -1,7 +1,7 @@
 rule init:
     """Dense Gaussian initialisation from the capture's depth + diffuse buffers."""
     input:
-        capture=f"{RESULTS}/{{scene}}/capture",
+        capture=training_capture,
     output:
         f"{RESULTS}/{{scene}}/init/points.ply",
     params:

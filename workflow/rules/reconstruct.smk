@@ -1,7 +1,7 @@
 rule reconstruct:
     """Optimise the Gaussian scene (warm-up, then path-traced reflections); resumes from its checkpoint."""
     input:
-        capture=f"{RESULTS}/{{scene}}/capture",
+        capture=training_capture,
         init=f"{RESULTS}/{{scene}}/init/points.ply",
     output:
         f"{RESULTS}/{{scene}}/model/gaussians.ply",
