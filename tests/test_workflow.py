@@ -30,6 +30,18 @@ def test_dry_run_plans_synth(tmp_path):
         assert rule in proc.stdout, rule
 
 
+def test_dry_run_network_buffers(tmp_path):
+    """A scene asking for network buffers plans the training data, the network and the buffers stage, and
+    trains on capture_net; the demo scene plans none of them."""
+    proc = snakemake(tmp_path, "-n", "--config", "scene=demo_network")
+    assert proc.returncode == 0, proc.stderr
+    for rule in ("buffernet_rooms", "buffernet_train", "buffers", "init", "reconstruct"):
+        assert f"rule {rule}:" in proc.stdout, rule
+    assert "demo_network/capture_net" in proc.stdout
+    proc = snakemake(tmp_path, "-n", "--config", "scene=demo")
+    assert "rule buffers:" not in proc.stdout and "buffernet" not in proc.stdout
+
+
 def test_lint():
     """Snakemake's linter finds nothing but its advice to use conda/containers (this project pins a venv)."""
     proc = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), "--lint"],

@@ -2,11 +2,6 @@
 # that fills a scene's capture with its predictions. Target: snakemake --cores 2 buffernet
 
 
-def _bn(key):
-    """The buffernet section (global: the first scene's merged config)."""
-    return scene_config(SCENES[0])["buffernet"][key]
-
-
 rule buffernet_rooms:
     """Random synthetic rooms (Mitsuba, exact buffers) for training / held-out evaluation."""
     output:
@@ -15,8 +10,8 @@ rule buffernet_rooms:
         split="train|heldout",
     params:
         py=PY,
-        r=lambda wc: _bn("rooms")[wc.split],
-        common=lambda wc: _bn("rooms"),
+        r=lambda wc: buffernet_section("rooms")[wc.split],
+        common=lambda wc: buffernet_section("rooms"),
     log:
         f"{RESULTS}/buffernet/logs/rooms_{{split}}.log",
     shell:
@@ -33,7 +28,7 @@ rule buffernet_train:
         directory(f"{RESULTS}/buffernet/{{name}}/pipeline"),
     params:
         py=PY,
-        args=lambda wc: " ".join(f"--{k.replace('_', '-')} {v}" for k, v in _bn("train").items()),
+        args=lambda wc: " ".join(f"--{k.replace('_', '-')} {v}" for k, v in buffernet_section("train").items()),
     log:
         f"{RESULTS}/buffernet/logs/train_{{name}}.log",
     threads: 2
@@ -61,7 +56,7 @@ rule buffernet_evaluate:
 rule buffernet:
     """Train and evaluate the workflow's buffer network: snakemake --cores 2 buffernet"""
     input:
-        f"{RESULTS}/buffernet/{_bn('name')}/heldout.json",
+        f"{RESULTS}/buffernet/{buffernet_section('name')}/heldout.json",
 
 
 rule buffers:

@@ -138,3 +138,8 @@ def buffernet_model(scene):
     path to a saved buffer network."""
     model = str(scene_config(scene)["buffers"]["model"])
     return f"{RESULTS}/buffernet/{model}/pipeline" if "/" not in model else model
+
+
+def buffernet_section(key):
+    """One key of the buffernet section (global: the first scene's merged config)."""
+    return scene_config(SCENES[0])["buffernet"][key]
