@@ -168,8 +168,11 @@ def _vae_step(pipe, vae, opt, dataset, cfg: TrainConfig, step: int, acc) -> floa
     total = 0.0
     for micro in range(cfg.grad_accum):
         enc = encode_items(draw_batch(dataset, cfg.seed, step, micro, cfg.batch_size))
-        x = torch.cat([enc["rgb"], enc["targets"]]).to(acc.device)
-        mask = torch.cat([torch.ones(len(enc["rgb"]), 1, *x.shape[-2:]), enc["masks"][:, None]]).to(acc.device)
+        # the images and as many of their buffers (drawn from (seed, step)): an autoencoder of both kinds
+        n = len(enc["rgb"])
+        pick = torch.randperm(len(enc["targets"]), generator=torch.Generator().manual_seed(cfg.seed * 100003 + step))[:n]
+        x = torch.cat([enc["rgb"], enc["targets"][pick]]).to(acc.device)
+        mask = torch.cat([torch.ones(n, 1, *x.shape[-2:]), enc["masks"][pick][:, None]]).to(acc.device)
         with acc.autocast():
             posterior = vae.encode(x).latent_dist
             recon = vae.decode(posterior.mean).sample
