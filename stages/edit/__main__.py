@@ -30,6 +30,8 @@ log = logging.getLogger("stages.edit")
 def _edit_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--edit", required=True, help="the edit's name (a key of the scene config's edits:)")
     p.add_argument("--edit-json", help="the edit's mapping as JSON (what Snakemake passes); else from --scene")
+    p.add_argument("--edit-file", type=Path, help="YAML with an edits: mapping (e.g. saved by the viewer, "
+                   "python -m stages.view); else from --scene")
 
 
 def _load_edit(args: argparse.Namespace) -> tuple[EditSpec, dict]:
@@ -38,13 +40,20 @@ def _load_edit(args: argparse.Namespace) -> tuple[EditSpec, dict]:
             raw = json.loads(args.edit_json)
         except json.JSONDecodeError as e:
             raise ValueError(f"--edit-json: invalid JSON ({e})") from None
+    elif args.edit_file:
+        import yaml
+
+        edits = (yaml.safe_load(args.edit_file.read_text()) or {}).get("edits") or {}
+        if args.edit not in edits:
+            raise ValueError(f"{args.edit_file}: no edit {args.edit!r} under edits: (found: {', '.join(edits) or 'none'})")
+        raw = edits[args.edit]
     elif args.scene:
         edits = load_config(args.scene, presets=args.preset).get("edits") or {}
         if args.edit not in edits:
             raise ValueError(f"scene {args.scene!r}: unknown edit {args.edit!r} (known: {', '.join(edits) or 'none'})")
         raw = edits[args.edit]
     else:
-        raise ValueError("give --edit-json or --scene (to read the edit from the scene config)")
+        raise ValueError("give --edit-json, --edit-file or --scene (to read the edit from the scene config)")
     return parse_edit(args.edit, raw), raw
 
 
