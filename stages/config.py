@@ -7,6 +7,7 @@ through this module, so a stage run by hand sees what the workflow would give it
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -57,6 +58,14 @@ def read_yaml(path: Path) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: must be a mapping at top level, got {type(data).__name__}")
     return data
+
+
+def reject_unknown(cls, d: dict, section: str) -> None:
+    """Raise ValueError naming ``d``'s keys that are not fields of the dataclass ``cls`` (a config section)."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(d) - known
+    if unknown:
+        raise ValueError(f"unknown {section} option(s) {sorted(unknown)}; known: {sorted(known)}")
 
 
 def scene_file(scene: str, _seen: tuple = ()) -> dict:

@@ -17,6 +17,7 @@ from models.buffernet.datasets import (  # noqa: E402
 )
 from models.capture import Camera, Capture, View, write_capture  # noqa: E402
 from models.capture.exr import write_exr_channels  # noqa: E402
+from stages.synth.cameras import look_at  # noqa: E402
 
 H, W = 6, 8  # 4:3 like Hypersim's 1024x768
 
@@ -194,18 +195,6 @@ def test_interiorverse_errors(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ captures
-
-
-def look_at(position, target):
-    """Camera-to-world (OpenGL: looks down -z, +y up)."""
-    pos = np.asarray(position, float)
-    z = pos - np.asarray(target, float)
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, 0.0, -1.0] if abs(z[1]) > 0.999 else [0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, np.cross(z, x), z, pos
-    return c2w
 
 
 def floor_view(name, c2w, split, h=6, w=8, fl=7.0):

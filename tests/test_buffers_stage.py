@@ -12,18 +12,7 @@ from models.capture.points import write_points_ply
 from models.capture.types import CaptureMeta, View
 from stages.buffers.__main__ import main as buffers_main
 from stages.buffers.predict import BuffersConfig, fill_buffers, to_capture_buffers
-
-
-def look_at(eye, target, up=(0, 1, 0)):
-    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, u, -f, eye
-    return c2w
+from stages.synth.cameras import look_at
 
 
 def floor_capture(n=3, h=12, w=16):

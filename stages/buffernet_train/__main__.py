@@ -4,6 +4,7 @@ accuracy against trivial baselines, and the cost of batched vs per-prompt infere
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -43,9 +44,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    samples = (r[i] for r in readers for i in range(len(r)))
-    rows = evaluate_network(pipe, list(samples) if args.limit is None else list(samples)[: args.limit],
-                            resolution=args.resolution, progress=not args.no_progress)
+    samples = list(itertools.islice((r[i] for r in readers for i in range(len(r))), args.limit))
+    rows = evaluate_network(pipe, samples, resolution=args.resolution, progress=not args.no_progress)
     print(format_rows(rows))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
+
+from stages.config import reject_unknown
 
 
 @dataclass
@@ -36,10 +38,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown buffernet-train option(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        reject_unknown(cls, d, "buffernet-train")
         cfg = cls(**d)
         cfg.check()
         return cfg

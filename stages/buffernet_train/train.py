@@ -123,8 +123,6 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True) -> Path:
             _save_checkpoint(acc, pipe, out, step + 1, cfg.keep_checkpoints)
     log.close()
     if start < total:
-        if train_vae and cfg.iterations == 0:
-            _set_scaling_factor(pipe, dataset, cfg)
         _save_checkpoint(acc, pipe, out, total, cfg.keep_checkpoints)
     final = out / "pipeline"
     acc.wait_for_everyone()

@@ -14,7 +14,7 @@ and converted from the network's conventions to the capture's:
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ from models.capture import Capture
 from models.capture.depth_align import align_to_points
 from models.capture.points import read_sfm_points
 from models.capture.types import View
+from stages.config import reject_unknown
 
 
 @dataclass
@@ -40,10 +41,7 @@ class BuffersConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "BuffersConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown buffers option(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        reject_unknown(cls, d, "buffers")
         cfg = cls(**d)
         bad = [b for b in cfg.predict if b not in BUFFERS]
         if bad:

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from models.capture import Capture, CaptureError, View
 from models.gaussians import Gaussians
+from stages.config import reject_unknown
 
 
 @dataclass
@@ -36,9 +37,7 @@ class InitConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "InitConfig":
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown init option(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
+        reject_unknown(cls, d, "init")
         if d.get("source", "auto") not in ("auto", "depth", "sfm"):
             raise ValueError(f"init.source must be auto, depth or sfm, got {d['source']!r}")
         return cls(**d)

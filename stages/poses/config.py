@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
+
+from stages.config import reject_unknown
 
 MATCHERS = ("exhaustive", "sequential", "vocab_tree")
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -27,10 +29,7 @@ class PosesConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "PosesConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown poses option(s) {sorted(unknown)}; known: {sorted(known)}")
+        reject_unknown(cls, d, "poses")
         cfg = cls(**d)
         cfg.check()
         return cfg

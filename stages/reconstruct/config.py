@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
+from stages.config import reject_unknown
+
 
 @dataclass
 class LossWeights:
@@ -57,10 +59,7 @@ class ReconstructConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "ReconstructConfig":
         d = dict(d)
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown reconstruct option(s) {sorted(unknown)}; known: {sorted(known)}")
+        reject_unknown(cls, d, "reconstruct")
         for name, sub in (("loss", LossWeights), ("lr", LearningRates)):
             if name in d:
                 sub_known = {f.name for f in fields(sub)}

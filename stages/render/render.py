@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +12,8 @@ from models.capture import LAYER_CHANNELS, Camera
 from models.capture.exr import write_exr_channels
 from models.gaussians import Gaussians
 from models.pathtrace.paths import PathConfig, trace_paths
+
+from stages.config import reject_unknown
 
 from .denoise import denoise
 
@@ -29,9 +31,7 @@ class RenderConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RenderConfig":
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown render option(s) {sorted(unknown)}; known: {sorted(f.name for f in fields(cls))}")
+        reject_unknown(cls, d, "render")
         return cls(**d)
 
 
