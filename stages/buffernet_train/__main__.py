@@ -39,6 +39,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from stages.buffernet_train.evaluate import evaluate_network, format_rows
 
     try:
+        if not (Path(args.model) / "model_index.json").is_file():
+            raise FileNotFoundError(f"{args.model}: not a saved buffer network (no model_index.json)")
         pipe = BufferNetPipeline.from_pretrained(args.model)
         readers = make_readers(args.data, cache=False)
     except (ValueError, OSError) as e:
