@@ -1,6 +1,6 @@
 """CLI: ``python -m stages.synth (--scene NAME | --config-json JSON) [--edits NAME...] --out DIR``, and
-``python -m stages.synth procedural --count N --seed S --out DIR [--resolution W H] [--views V] [--spp P]``
-(random training rooms, ``procedural.py``)."""
+``python -m stages.synth procedural --count N --seed S --out DIR [--resolution W H] [--views V] [--spp P]
+[--no-denoise]`` (random training rooms, ``procedural.py``)."""
 
 from __future__ import annotations
 
@@ -37,6 +37,8 @@ def procedural_main(argv: list[str]) -> int:
     p.add_argument("--resolution", type=int, nargs=2, default=(64, 64), metavar=("W", "H"))
     p.add_argument("--views", type=int, default=8, help="cameras per scene (default 8)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    p.add_argument("--no-denoise", dest="denoise", action="store_false",
+                   help="keep the Monte Carlo noise (default: OIDN-denoised diffuse / specular, rgb = their sum)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = p.parse_args(argv)
 
@@ -44,7 +46,8 @@ def procedural_main(argv: list[str]) -> int:
 
     try:
         report = render_procedural(args.out, args.count, args.seed, resolution=tuple(args.resolution),
-                                   views=args.views, spp=args.spp, progress=not args.no_progress)
+                                   views=args.views, spp=args.spp, denoise=args.denoise,
+                                   progress=not args.no_progress)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -48,7 +48,8 @@ COLOR_LAYERS = ("rgb", "diffuse", "specular")
 
 
 def _first_hit_material(mi, dr, scene, si, valid, materials: dict[str, MaterialEntry]):
-    """Per-lane route, roughness, F0, and principled lobe parameters at the first hit."""
+    """Per-lane route, roughness, F0, principled lobe parameters and the surface colour (texture or base
+    colour: the albedo guide of the denoiser) at the first hit."""
     route = dr.full(mi.UInt32, ROUTE_DIFFUSE, dr.width(valid))
     rough = mi.Float(0.0)
     f0 = mi.Color3f(0.0)
@@ -56,6 +57,7 @@ def _first_hit_material(mi, dr, scene, si, valid, materials: dict[str, MaterialE
     p_rough = mi.Float(0.0)
     metal = mi.Float(0.0)
     spec = mi.Float(0.0)
+    albedo = mi.Color3f(0.0)
     for shape in scene.shapes():
         e = materials[shape.id()]
         m = valid & (si.shape == mi.ShapePtr(shape))
@@ -63,17 +65,18 @@ def _first_hit_material(mi, dr, scene, si, valid, materials: dict[str, MaterialE
         rough = dr.select(m, e.roughness, rough)
         color = e.texture.eval(si, m) if e.texture is not None else mi.Color3f(*e.base_color)
         f0 = dr.select(m, mi.Color3f(*e.f0_const) + e.f0_tex_weight * color, f0)
+        albedo = dr.select(m, color, albedo)
         if e.principled:
             base = dr.select(m, color, base)
             p_rough = dr.select(m, e.roughness, p_rough)
             metal = dr.select(m, e.metallic, metal)
             spec = dr.select(m, e.specular, spec)
-    return route, rough, f0, base, p_rough, metal, spec
+    return route, rough, f0, base, p_rough, metal, spec, albedo
 
 
 def trace(scene, ray, rng, materials: dict[str, MaterialEntry], max_depth: int) -> dict:
     """Trace one sample per lane. Returns Dr.Jit arrays: rgb, diffuse, specular, emission
-    (Color3f), depth, hit (Float), normal (Vector3f), roughness (Float), f0 (Color3f)."""
+    (Color3f), depth, hit (Float), normal (Vector3f), roughness (Float), f0, albedo (Color3f)."""
     mi = mitsuba()
     import drjit as dr
 
@@ -90,7 +93,7 @@ def trace(scene, ray, rng, materials: dict[str, MaterialEntry], max_depth: int) 
     normal = dr.select(dr.dot(normal, ray.d) > 0, -normal, normal)
     normal = dr.select(valid, normal, mi.Vector3f(0.0))
     depth = dr.select(valid, si.t, 0.0)
-    route, rough, f0, base, p_rough, metal, spec = _first_hit_material(mi, dr, scene, si, valid, materials)
+    route, rough, f0, base, p_rough, metal, spec, albedo = _first_hit_material(mi, dr, scene, si, valid, materials)
     emission = si.emitter(scene).eval(si, valid)
 
     L = {k: mi.Color3f(0.0) for k in COLOR_LAYERS}
@@ -162,7 +165,8 @@ def trace(scene, ray, rng, materials: dict[str, MaterialEntry], max_depth: int) 
 
     L["emission"] = emission
     L["rgb"] = L["rgb"] + emission
-    return dict(L, depth=depth, hit=dr.select(valid, 1.0, 0.0), normal=normal, roughness=rough, f0=f0)
+    return dict(L, depth=depth, hit=dr.select(valid, 1.0, 0.0), normal=normal, roughness=rough, f0=f0,
+                albedo=albedo)
 
 
 def _np(x, channels: int) -> np.ndarray:
@@ -176,7 +180,8 @@ def render_view(scene, materials: dict[str, MaterialEntry], camera, spp: int, se
                 max_depth: int = 5, spp_chunk: int = 64) -> dict[str, np.ndarray]:
     """Render one view. ``camera``: anything with width, height, fl_x, fl_y, cx, cy, c2w (OpenGL).
     Returns layer -> float32 [H, W, C] (rgb, diffuse, specular, emission, depth, normal,
-    roughness, f0, mask)."""
+    roughness, f0, mask) and ``albedo`` (first-hit surface colour, the denoiser's guide; not a capture
+    layer)."""
     mi = mitsuba()
     import drjit as dr
 
@@ -184,7 +189,7 @@ def render_view(scene, materials: dict[str, MaterialEntry], camera, spp: int, se
     npx = w_px * h_px
     c2w = np.asarray(camera.c2w, dtype=np.float64)
     rot, origin = c2w[:3, :3], c2w[:3, 3]
-    sums = {k: np.zeros((npx, 3)) for k in ("rgb", "diffuse", "specular", "emission", "normal", "f0")}
+    sums = {k: np.zeros((npx, 3)) for k in ("rgb", "diffuse", "specular", "emission", "normal", "f0", "albedo")}
     sums.update({k: np.zeros((npx, 1)) for k in ("depth", "roughness", "hit")})
 
     # Per-view / per-pass scalars are opaque JIT variables, so the traced kernels are identical
@@ -217,14 +222,14 @@ def render_view(scene, materials: dict[str, MaterialEntry], camera, spp: int, se
         hit = _np(out["hit"], 1)
         for k in ("rgb", "diffuse", "specular", "emission"):
             sums[k] += _np(out[k], 3).reshape(npx, ns, 3).sum(1)
-        for k, c in (("normal", 3), ("f0", 3), ("depth", 1), ("roughness", 1)):
+        for k, c in (("normal", 3), ("f0", 3), ("albedo", 3), ("depth", 1), ("roughness", 1)):
             sums[k] += (_np(out[k], c) * hit).reshape(npx, ns, c).sum(1)
         sums["hit"] += hit.reshape(npx, ns, 1).sum(1)
         done += ns
 
     nhit = np.maximum(sums["hit"], 1.0)
     buffers = {k: sums[k] / spp for k in ("rgb", "diffuse", "specular", "emission")}
-    for k in ("depth", "roughness", "f0"):
+    for k in ("depth", "roughness", "f0", "albedo"):
         buffers[k] = sums[k] / nhit
     nrm = sums["normal"]
     length = np.linalg.norm(nrm, axis=1, keepdims=True)

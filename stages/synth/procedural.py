@@ -182,9 +182,12 @@ def _objects(b: _Builder, hx: float, hz: float, height: float) -> None:
         b.add(name, shape, material, tr)
 
 
-def random_scene_config(seed: int, resolution: tuple[int, int] = (64, 64), views: int = 8, spp: int = 64) -> dict:
+def random_scene_config(seed: int, resolution: tuple[int, int] = (64, 64), views: int = 8, spp: int = 64,
+                        denoise: bool = True) -> dict:
     """A random room as a ``synth:`` config section (plain dict, YAML / JSON friendly). ``resolution`` is
-    (W, H); all ``views`` cameras are in the train split (no test views). Deterministic per ``seed``."""
+    (W, H); all ``views`` cameras are in the train split (no test views). Deterministic per ``seed``.
+    ``denoise``: OIDN on the rendered layers (``render.denoise_view``), so that the buffers a network learns
+    hold no Monte Carlo noise (caustic fireflies in the diffuse layer, which no predictor can reproduce)."""
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     if views < 1 or spp < 1:
@@ -207,6 +210,7 @@ def random_scene_config(seed: int, resolution: tuple[int, int] = (64, 64), views
         "resolution": [int(resolution[0]), int(resolution[1])],
         "spp": int(spp),
         "max_depth": 4,
+        "denoise": bool(denoise),
         "textures": b.textures,
         "objects": b.objects,
         "cameras": {"train": train, "test": {"type": "orbit", "count": 0}},
@@ -233,7 +237,7 @@ def is_complete(folder: Path, config: dict) -> bool:
 
 
 def render_procedural(out_dir: str | Path, count: int, seed: int = 0, *, resolution: tuple[int, int] = (64, 64),
-                      views: int = 8, spp: int = 64, progress: bool = True) -> dict:
+                      views: int = 8, spp: int = 64, denoise: bool = True, progress: bool = True) -> dict:
     """Render ``count`` random rooms (seeds ``seed .. seed + count - 1``) into ``out_dir/scene_NNNN``,
     skipping complete ones. Returns {"rendered": [...], "skipped": [...], "seconds": {name: s}}."""
     from stages.provenance import write_stage_json
@@ -248,7 +252,8 @@ def render_procedural(out_dir: str | Path, count: int, seed: int = 0, *, resolut
     bar = tqdm(range(count), desc="procedural", unit="scene", disable=not progress)
     for i in bar:
         folder = scene_dir(out_dir, i)
-        cfg = random_scene_config(seed + i, resolution=resolution, views=views, spp=spp)
+        cfg = random_scene_config(seed + i, resolution=resolution, views=views, spp=spp,
+                                  denoise=denoise)
         record = {"synth": cfg, "procedural": {"seed": seed + i}}
         if is_complete(folder, record):
             report["skipped"].append(folder.name)

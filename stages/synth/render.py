@@ -26,6 +26,20 @@ def scene_views(spec: SynthSpec) -> list[tuple[str, str, object]]:
     return out
 
 
+def denoise_view(buffers: dict[str, np.ndarray], albedo: np.ndarray) -> dict[str, np.ndarray]:
+    """Monte Carlo noise out of a rendered view (training data wants the noiseless image's buffers): Intel
+    Open Image Denoise on ``diffuse`` with the first-hit colour and normal as guides, on ``specular`` without
+    guides (what it shows is not the surface's colour), then ``rgb = diffuse + specular + emission`` so the
+    capture's identity still holds. G-buffers are untouched."""
+    from stages.render.denoise import denoise
+
+    out = dict(buffers)
+    out["diffuse"] = np.maximum(denoise(buffers["diffuse"], albedo, buffers["normal"]), 0.0)
+    out["specular"] = np.maximum(denoise(buffers["specular"]), 0.0)
+    out["rgb"] = (out["diffuse"] + out["specular"] + buffers["emission"]).astype(np.float32)
+    return out
+
+
 def render_spec(spec: SynthSpec, *, progress: bool = True, scene_name: str | None = None,
                 splits: tuple[str, ...] | None = None) -> Capture:
     """Render the views of ``spec`` (only those of ``splits`` if given) into an in-memory Capture. A view's
@@ -41,6 +55,9 @@ def render_spec(spec: SynthSpec, *, progress: bool = True, scene_name: str | Non
         t0 = time.perf_counter()
         buffers = render_view(scene, materials, cam, spec.spp, seed=spec.seed * 100_003 + i,
                               max_depth=spec.max_depth, spp_chunk=spec.spp_chunk)
+        albedo = buffers.pop("albedo")  # a denoiser guide, not a capture layer
+        if spec.denoise:
+            buffers = denoise_view(buffers, albedo)
         timings[name] = round(time.perf_counter() - t0, 4)
         views.append(View(name=name, camera=cam, split=split, buffers=buffers))
     capture = Capture(views=views, meta=CaptureMeta(source="synthetic", color_space="linear", units="meters"))
@@ -53,6 +70,8 @@ def render_spec(spec: SynthSpec, *, progress: bool = True, scene_name: str | Non
         "resolution": list(spec.resolution),
         "seed": spec.seed,
         "emission_layer": "light seen directly by the camera; R,G,B = diffuse + specular + emission",
+        "denoised": ("OIDN 'RT' on diffuse (albedo + normal guides) and specular (no guide); "
+                     "rgb = their sum + emission") if spec.denoise else False,
         "gbuffer_filter": "box; depth/normal/roughness/f0 averaged over the pixel's hit samples, mask = hit fraction",
         "seconds_per_view": timings,
         "seconds_total": round(time.perf_counter() - t_all, 3),

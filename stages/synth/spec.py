@@ -91,6 +91,7 @@ class SynthSpec:
     seed: int = 0
     max_depth: int = 5  # scattering vertices per path (first hit included)
     spp_chunk: int = 64  # samples per pixel traced per wavefront pass (memory bound)
+    denoise: bool = False  # OIDN on diffuse / specular (render.denoise_view); rgb = their sum + emission
 
     def object(self, name: str) -> ObjectSpec:
         for obj in self.objects:
@@ -129,6 +130,12 @@ def _int(v: Any, where: str, lo: int | None = None) -> int:
         raise ValueError(f"{where}: must be an integer, got {v!r}")
     if lo is not None and v < lo:
         raise ValueError(f"{where}: must be >= {lo}, got {v}")
+    return v
+
+
+def _bool(v: Any, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise ValueError(f"{where}: must be true or false, got {v!r}")
     return v
 
 
@@ -291,7 +298,8 @@ def parse_camera_path(d: Any, where: str) -> CameraPathSpec:
 
 def parse_spec(cfg: Any, where: str = "synth") -> SynthSpec:
     """The typed spec of a ``synth:`` section. Raises ValueError naming the bad key/value."""
-    _keys(cfg, where, {"seed", "resolution", "spp", "max_depth", "spp_chunk", "textures", "objects", "cameras"},
+    _keys(cfg, where, {"seed", "resolution", "spp", "max_depth", "spp_chunk", "denoise", "textures", "objects",
+                          "cameras"},
           {"resolution", "spp", "objects", "cameras"})
     textures_raw = cfg.get("textures", {}) or {}
     if not isinstance(textures_raw, dict):
@@ -321,4 +329,5 @@ def parse_spec(cfg: Any, where: str = "synth") -> SynthSpec:
         seed=_int(cfg.get("seed", 0), f"{where}.seed", 0),
         max_depth=_int(cfg.get("max_depth", 5), f"{where}.max_depth", 1),
         spp_chunk=_int(cfg.get("spp_chunk", 64), f"{where}.spp_chunk", 1),
+        denoise=_bool(cfg.get("denoise", False), f"{where}.denoise"),
     )
