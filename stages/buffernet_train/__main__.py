@@ -36,7 +36,7 @@ def _train(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from models.buffernet import BufferNetPipeline
     from stages.buffernet_train.data import make_readers
-    from stages.buffernet_train.evaluate import evaluate_network, format_rows
+    from stages.buffernet_train.evaluate import evaluate_network, format_rows, vae_roundtrip
 
     try:
         if not (Path(args.model) / "model_index.json").is_file():
@@ -48,6 +48,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         return 1
     samples = list(itertools.islice((r[i] for r in readers for i in range(len(r))), args.limit))
     rows = evaluate_network(pipe, samples, resolution=args.resolution, progress=not args.no_progress)
+    for b, value in vae_roundtrip(pipe, samples, resolution=args.resolution, progress=not args.no_progress).items():
+        if b in rows:  # the truth through the VAE alone: the best any UNet on this VAE can score
+            rows[b]["vae_roundtrip"] = value
     print(format_rows(rows))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
@@ -113,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
                       ("checkpoint_every", int), ("seed", int), ("log_every", int)):
         t.add_argument(f"--{name.replace('_', '-')}", dest=name, type=typ, help=f"see TrainConfig.{name}")
     t.add_argument("--mixed-precision", dest="mixed_precision", choices=("no", "fp16", "bf16"))
+    t.add_argument("--gradient-checkpointing", dest="gradient_checkpointing", action="store_const", const=True,
+                   help="recompute activations in the backward pass (less memory, ~30%% slower; the default)")
     t.add_argument("--no-gradient-checkpointing", dest="gradient_checkpointing", action="store_const", const=False)
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints in --out")
     t.add_argument("--no-progress", action="store_true")

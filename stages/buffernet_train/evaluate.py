@@ -14,9 +14,11 @@ normal = facing the camera (0, 0, 1), depth = constant, roughness = 0.5, f0 = 0.
 from __future__ import annotations
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
-from models.buffernet.codec import BUFFERS, input_exposure
+from models.buffernet.codec import BUFFERS, decode_output, encode_target, input_exposure
+from models.buffernet.pipeline import resize, size_for
 
 LOWER_IS_BETTER = {"normal": "mean angular error (deg)", "depth": "AbsRel"}
 
@@ -85,9 +87,33 @@ def evaluate_network(pipe, samples, resolution: int | None = None, progress: boo
     return rows
 
 
+@torch.no_grad()
+def vae_roundtrip(pipe, samples, resolution: int | None = None, progress: bool = True) -> dict:
+    """Mean per-buffer metric of the TRUE buffers after the VAE round trip (encode, decode), exactly as the
+    network's outputs pass through it: the best any UNet on this VAE can score (the ceiling)."""
+    scores = {b: [] for b in BUFFERS}
+    for s in tqdm(samples, desc="vae round trip", disable=not progress):
+        exposure = input_exposure(s.rgb)
+        h, w = s.rgb.shape[:2]
+        size = size_for(h, w, pipe.multiple, resolution)
+        for b in BUFFERS:
+            if b not in s.buffers or not s.masks[b].any():
+                continue
+            x = resize(encode_target(b, s.buffers[b], exposure, s.masks[b])[None], size)
+            y = resize(pipe.decode_latents(pipe.image_latents(x.to(pipe.device))).float().cpu(), (h, w))[0]
+            scores[b].append(score(b, decode_output(b, y, exposure), s.buffers[b], s.masks[b], exposure))
+    return {b: round(float(np.mean(v)), 4) for b, v in scores.items() if v}
+
+
 def format_rows(rows: dict) -> str:
-    lines = [f"{'buffer':<10} {'metric':<26} {'network':>9} {'baseline':>9}  beats", "-" * 64]
+    """The table: network, baseline, whether it beats it, and (when measured) the VAE round trip of the truth."""
+    ceiling = any("vae_roundtrip" in r for r in rows.values())
+    head = f"{'buffer':<10} {'metric':<26} {'network':>9} {'baseline':>9}  beats"
+    lines = [head + ("  VAE ceiling" if ceiling else ""), "-" * (64 + 13 * ceiling)]
     for b, r in rows.items():
-        lines.append(f"{b:<10} {r['metric']:<26} {r['network']:>9.3f} {r['baseline']:>9.3f}  "
-                     f"{'yes' if r['beats_baseline'] else 'NO'}")
+        line = (f"{b:<10} {r['metric']:<26} {r['network']:>9.3f} {r['baseline']:>9.3f}  "
+                f"{'yes' if r['beats_baseline'] else 'NO ':<5}")
+        if "vae_roundtrip" in r:
+            line += f"  {r['vae_roundtrip']:>11.3f}"
+        lines.append(line.rstrip())
     return "\n".join(lines)

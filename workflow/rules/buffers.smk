@@ -12,12 +12,13 @@ rule buffernet_rooms:
         py=PY,
         r=lambda wc: buffernet_section("rooms")[wc.split],
         common=lambda wc: buffernet_section("rooms"),
+        denoise=lambda wc: "" if buffernet_section("rooms").get("denoise", True) else "--no-denoise",
     log:
         f"{RESULTS}/buffernet/logs/rooms_{{split}}.log",
     shell:
         "{params.py} -m stages.synth procedural --count {params.r[count]} --seed {params.r[seed]} --out {output} "
         "--resolution {params.common[resolution][0]} {params.common[resolution][1]} --views {params.common[views]} "
-        "--spp {params.common[spp]} --no-progress > {log} 2>&1"
+        "--spp {params.common[spp]} {params.denoise} --no-progress > {log} 2>&1"
 
 
 rule buffernet_train:
@@ -28,7 +29,9 @@ rule buffernet_train:
         directory(f"{RESULTS}/buffernet/{{name}}/pipeline"),
     params:
         py=PY,
-        args=lambda wc: " ".join(f"--{k.replace('_', '-')} {v}" for k, v in buffernet_section("train").items()),
+        args=lambda wc: " ".join(
+            (f"--{k.replace('_', '-')}" if v else f"--no-{k.replace('_', '-')}") if isinstance(v, bool)
+            else f"--{k.replace('_', '-')} {v}" for k, v in buffernet_section("train").items()),
     log:
         f"{RESULTS}/buffernet/logs/train_{{name}}.log",
     threads: 2
