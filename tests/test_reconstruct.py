@@ -15,6 +15,7 @@ from stages.reconstruct.trainer import psnr
 from stages.synth import render_capture
 
 SMALL = dict(iterations=160, warmup=80, rays_per_step=768, prune_from=100, prune_every=50, log_every=10,
+             reflection_fill_count=0,  # tests/test_reflection_fill.py covers it
              checkpoint_every=40, threads=2)
 
 

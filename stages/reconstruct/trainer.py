@@ -27,6 +27,7 @@ from models.tracer.output import TraceOutput
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
+from .reflection_fill import mirror_rays, reflection_fill_gaussians
 
 log = logging.getLogger("stages.reconstruct")
 
@@ -131,18 +132,10 @@ class Trainer:
         """Fraction of perfect-mirror reflections of shiny training pixels (F0 > 0.3, roughness < 0.3, from the
         buffers) that hit none of the initial Gaussians: what reflections would see beyond the captured geometry.
         (Not a transmittance test: initial Gaussians are faint, opacity 0.1, so walls are semi-transparent.)"""
-        t = self.rays.targets
-        if not all(k in t for k in ("depth", "normal", "f0", "roughness")):
+        found = mirror_rays(self.rays, max_rays)
+        if found is None:
             return 0.0
-        shiny = self.rays.mask & (t["f0"].mean(-1) > 0.3) & (t["roughness"].reshape(-1) < 0.3)
-        index = torch.nonzero(shiny).reshape(-1)
-        if len(index) == 0:
-            return 0.0
-        index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(0))[:max_rays]]
-        d = self.rays.dirs[index]
-        n = torch.nn.functional.normalize(t["normal"][index], dim=-1)
-        x = self.rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
-        r = d - 2 * (d * n).sum(-1, keepdim=True) * n
+        x, r, _ = found
         out = self.backend.trace(x + 0.01 * r, r, init)
         return float((out.hit_count.reshape(-1) == 0).float().mean())
 
@@ -237,6 +230,13 @@ class Trainer:
             self._replace(extra=ff)
             self.far_field_added = True
             log.info("step %d: added %d far-field Gaussians", self.step, len(ff))
+            if cfg.reflection_fill_count > 0:
+                fill, stats = reflection_fill_gaussians(self.rays, self.backend.trace, self.gaussians(),
+                                                        cfg.reflection_fill_count, seed=cfg.seed)
+                if fill is not None:
+                    self._replace(extra=fill)
+                log.info("step %d: added %d Gaussians along %d open mirror reflections (of %d mirror rays)",
+                         self.step, stats["added"], stats["open_rays"], stats["mirror_rays"])
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)

@@ -1,0 +1,140 @@
+"""Gaussians in the reflected frusta: geometry that the training views see only in mirrors.
+
+The dense initialisation unprojects what the cameras see directly, so an object (or a light) seen only
+through a mirror has no Gaussians, and the far-field shell (``far_field.py``) sits far behind it. At the end
+of warm-up, for the mirror-like training pixels (F0 > 0.3, roughness < 0.3 in the buffers) whose perfect
+reflection still passes through the scene (transmittance > ``open_transmittance`` through the warmed-up
+Gaussians), Gaussians are spread along the reflected ray between the mirror and where the ray leaves the
+scene's box (the current Gaussians' box padded by 5 %), ``per_ray`` of them at jittered, stratified
+distances. Positions in space a training camera sees to be empty (in its frustum, in front of its depth
+buffer) are dropped (``seen_empty``): a Gaussian there would cloud the direct views. What remains lies where
+no camera looked: behind surfaces or outside every frustum, where objects seen only in mirrors are. Across
+views the reflected rays of one unseen point cross there, so training keeps the Gaussians near the crossing
+(they explain several views' reflections) and prunes the rest.
+
+Each starts with the colour the reflection needs, ``specular / F0`` of its pixel (a mirror's specular is
+F0 times the reflected radiance), opacity 0.1, roughness 1 and F0 0.04 (matte: it is seen, not a mirror),
+normal 0, scale half the spacing along its ray.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from models.gaussians import Gaussians
+
+SHINY_F0 = 0.3
+SHINY_ROUGHNESS = 0.3
+
+
+def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """(points on the mirrors [M, 3], unit reflected directions [M, 3], ray indices [M]) for up to
+    ``max_rays`` random mirror-like training pixels (from the depth / normal / F0 / roughness buffers), or
+    None when the capture lacks those buffers or has no such pixel."""
+    t = rays.targets
+    if not all(k in t for k in ("depth", "normal", "f0", "roughness")):
+        return None
+    shiny = rays.mask & (t["f0"].mean(-1) > SHINY_F0) & (t["roughness"].reshape(-1) < SHINY_ROUGHNESS)
+    index = torch.nonzero(shiny).reshape(-1)
+    if len(index) == 0:
+        return None
+    index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(seed))[:max_rays]]
+    d = rays.dirs[index]
+    n = torch.nn.functional.normalize(t["normal"][index], dim=-1)
+    x = rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
+    r = torch.nn.functional.normalize(d - 2 * (d * n).sum(-1, keepdim=True) * n, dim=-1)
+    return x, r, index
+
+
+def box_exit(x: torch.Tensor, r: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """[M] distance along the unit rays ``x + t r`` (x inside the box) to the axis-aligned box's boundary."""
+    safe = torch.where(r.abs() < 1e-12, torch.full_like(r, 1e-12), r)
+    t_far = torch.maximum((lo - x) / safe, (hi - x) / safe)
+    return t_far.min(dim=-1).values.clamp_min(0.0)
+
+
+def seen_empty(points: torch.Tensor, views, margin: float = 0.9) -> torch.Tensor:
+    """[N] bool: the point lies inside some view's frustum, nearer than ``margin`` x that pixel's depth (the
+    capture's depth is the distance along the ray), or on a pixel that hits nothing: space seen to be empty."""
+    empty = torch.zeros(len(points), dtype=torch.bool)
+    p = points.detach().double().cpu().numpy()
+    for view in views:
+        cam = view.camera
+        local = (p - cam.origin) @ cam.rotation  # world -> camera (OpenGL: looking down -z)
+        z = -local[:, 2]
+        front = z > 1e-9
+        zs = np.where(front, z, 1.0)
+        col = np.floor(cam.fl_x * local[:, 0] / zs + cam.cx).astype(np.int64)
+        row = np.floor(-cam.fl_y * local[:, 1] / zs + cam.cy).astype(np.int64)
+        inside = front & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        if not inside.any() or "depth" not in view.buffers:
+            continue
+        r, c = row[inside], col[inside]
+        depth = view.buffers["depth"][r, c, 0]
+        hit = view.buffers["mask"][r, c, 0] > 0.5 if "mask" in view.buffers else depth > 0
+        dist = np.linalg.norm(p[inside] - cam.origin, axis=1)
+        seen = ~hit | (dist < margin * depth)
+        idx = np.nonzero(inside)[0][seen]
+        empty[torch.from_numpy(idx)] = True
+    return empty
+
+
+@torch.no_grad()
+def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, seed: int = 0,
+                              per_ray: int = 8, open_transmittance: float = 0.5,
+                              dtype=torch.float32) -> tuple[Gaussians | None, dict]:
+    """Up to ``count`` Gaussians along the open mirror reflections of the training rays (module docstring).
+    ``trace_fn(origins, dirs, gaussians) -> TraceOutput`` traces against the current (warmed-up) model.
+    Returns (Gaussians or None, statistics for the log)."""
+    stats = {"mirror_rays": 0, "open_rays": 0, "unseen": 0, "added": 0}
+    found = mirror_rays(rays, max_rays=max(8 * count // per_ray, 1), seed=seed)
+    if found is None or count < per_ray:
+        return None, stats
+    x, r, index = found
+    stats["mirror_rays"] = len(index)
+    means = gaussians.means.detach()
+    lo, hi = means.min(0).values, means.max(0).values
+    pad = 0.05 * (hi - lo).max()
+    lo, hi = lo - pad, hi + pad
+    step = float((hi - lo).max()) * 1e-3
+    out = trace_fn(x + step * r, r, gaussians)
+    open_ = out.transmittance.reshape(-1) > open_transmittance
+    inside = ((x > lo) & (x < hi)).all(-1)
+    keep = torch.nonzero(open_ & inside).reshape(-1)
+    stats["open_rays"] = len(keep)
+    if len(keep) == 0:
+        return None, stats
+    x, r, index = x[keep], r[keep], index[keep]
+    t_min = 20 * step
+    t_max = box_exit(x, r, lo, hi).clamp_min(2 * t_min)
+    gen = torch.Generator().manual_seed(seed + 1)
+    u = (torch.arange(per_ray, dtype=x.dtype) + torch.rand(len(x), per_ray, generator=gen, dtype=x.dtype)) / per_ray
+    t = t_min + u * (t_max - t_min)[:, None]  # [M, K] stratified, jittered
+    pos = (x[:, None, :] + t[..., None] * r[:, None, :]).reshape(-1, 3)
+    spacing = ((t_max - t_min) / per_ray)[:, None].expand(-1, per_ray).reshape(-1)
+    index = index[:, None].expand(-1, per_ray).reshape(-1)
+    unseen = torch.nonzero(~seen_empty(pos, rays.views)).reshape(-1)
+    unseen = unseen[torch.randperm(len(unseen), generator=gen)[:count]].sort().values
+    stats["unseen"] = len(unseen)
+    if len(unseen) == 0:
+        return None, stats
+    pos, spacing, index = pos[unseen], spacing[unseen], index[unseen]
+    targets = rays.targets
+    colour = targets["specular"][index] / targets["f0"][index].clamp_min(0.05) if "specular" in targets \
+        else torch.full((len(index), 3), 0.2, dtype=pos.dtype)
+    n = len(pos)
+    stats["added"] = n
+    f = dict(dtype=dtype)
+    return Gaussians(
+        means=pos.to(**f),
+        quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
+        log_scales=torch.log(0.5 * spacing.reshape(n, 1).clamp_min(1e-6)).repeat(1, 3).to(**f),
+        opacity_logits=torch.full((n,), math.log(0.1 / 0.9), **f),
+        diffuse=colour.clamp(0.0, 100.0).to(**f),
+        normals=torch.zeros((n, 3), **f),
+        roughness=torch.ones((n,), **f),
+        f0=torch.full((n, 3), 0.04, **f),
+    ), stats

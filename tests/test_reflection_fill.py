@@ -1,0 +1,89 @@
+"""Gaussians along the reflected frusta: placed only on mirror reflections that pass through the scene,
+spread along them inside the scene's box, coloured specular / F0."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from models.gaussians import Gaussians
+from models.tracer._torch_impl import reference_trace
+from stages.reconstruct.data import RaySet
+from stages.reconstruct.reflection_fill import box_exit, reflection_fill_gaussians, seen_empty
+
+
+def _gaussians(means: torch.Tensor, scale: float, opacity: float) -> Gaussians:
+    n = len(means)
+    return Gaussians(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                     log_scales=torch.full((n, 3), math.log(scale)),
+                     opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity))),
+                     diffuse=torch.full((n, 3), 0.5), normals=torch.zeros(n, 3), roughness=torch.full((n,), 0.5),
+                     f0=torch.full((n, 3), 0.04))
+
+
+def _scene() -> Gaussians:
+    """Faint corners spanning the box [-1, 1]^3, and an opaque ceiling over the x < 0 half at z = 0.95."""
+    corners = torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+    g = torch.linspace(-1, 1, 21)
+    xs, ys = torch.meshgrid(g[g < -0.05], g, indexing="ij")
+    ceiling = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.full((xs.numel(),), 0.95)], -1)
+    a, b = _gaussians(corners, 0.01, 0.1), _gaussians(ceiling, 0.08, 0.99)
+    return Gaussians(**{k: torch.cat([getattr(a, k), getattr(b, k)]) for k in a.params()})
+
+
+def _mirror_rays(f0: float = 0.9) -> RaySet:
+    """Cameras looking straight down at a floor mirror (z = -0.9, normal +z): reflections go straight up."""
+    g = torch.linspace(-0.8, 0.8, 12)
+    xs, ys = torch.meshgrid(g, g, indexing="ij")
+    n = xs.numel()
+    origins = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.full((n,), 0.8)], -1)
+    dirs = torch.tensor([[0.0, 0.0, -1.0]]).repeat(n, 1)
+    colour = torch.tensor([0.2, 0.5, 3.0])  # the radiance the mirror shows
+    targets = {"depth": torch.full((n, 1), 1.7), "normal": torch.tensor([[0.0, 0, 1]]).repeat(n, 1),
+               "f0": torch.full((n, 3), f0), "roughness": torch.zeros(n, 1),
+               "specular": (f0 * colour).repeat(n, 1), "diffuse": torch.zeros(n, 3)}
+    return RaySet(origins, dirs, torch.ones(n, dtype=torch.bool), targets, torch.zeros(n, dtype=torch.long), [])
+
+
+def test_fill_follows_open_reflections_only():
+    scene, rays = _scene(), _mirror_rays()
+    fill, stats = reflection_fill_gaussians(rays, reference_trace, scene, count=400, per_ray=4)
+    assert stats["mirror_rays"] == 144 and 0 < stats["open_rays"] < 144
+    assert fill is not None and len(fill) == stats["added"] <= 400 and len(fill) % 4 == 0
+    means = fill.means
+    assert (means[:, 0] > -0.05).all(), "nothing under the opaque ceiling"  # its reflections are blocked
+    assert (means[:, 2] > -0.9).all() and (means[:, 2] < 1.1 + 1e-4).all()  # mirror .. the padded box top
+    # each open reflection gets per_ray Gaussians at distinct heights above its own mirror point
+    xy = means[:, :2].reshape(-1, 4, 2)
+    assert torch.allclose(xy, xy[:, :1].expand_as(xy), atol=1e-5)
+    assert (means[:, 2].reshape(-1, 4).diff(dim=1) > 0).all()
+    torch.testing.assert_close(fill.diffuse, torch.tensor([[0.2, 0.5, 3.0]]).expand(len(fill), 3))
+    assert torch.isfinite(fill.log_scales).all() and (fill.roughness == 1).all()
+
+
+def test_no_fill_without_mirrors():
+    fill, stats = reflection_fill_gaussians(_mirror_rays(f0=0.04), reference_trace, _scene(), count=400)
+    assert fill is None and stats["added"] == 0
+
+
+def test_box_exit():
+    x = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    r = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [1.0, 1.0, 0.0]]), dim=-1)
+    t = box_exit(x, r, torch.full((3,), -1.0), torch.full((3,), 1.0))
+    torch.testing.assert_close(t, torch.tensor([1.0, 0.5 * math.sqrt(2)]))
+
+
+def test_seen_empty_is_the_space_in_front_of_the_depth_buffer():
+    from models.capture import View
+    from models.capture.camera import Camera
+
+    cam = Camera(width=8, height=8, fl_x=8.0, fl_y=8.0, cx=4.0, cy=4.0, c2w=np.eye(4))  # looks down -z
+    depth = np.full((8, 8, 1), 2.0, np.float32)
+    mask = np.ones((8, 8, 1), np.float32)
+    mask[0, 0] = 0  # this pixel sees nothing: all of it is empty
+    view = View(name="v", camera=cam, split="train", buffers={"depth": depth, "mask": mask})
+    pts = torch.tensor([[0.0, 0, -1], [0, 0, -3], [5, 0, -1], [0, 0, 1], [-0.45, 0.45, -1.0], [-2.25, 2.25, -5.0]])
+    empty = seen_empty(pts, [view])
+    assert empty.tolist() == [True, False, False, False, True, True]  # in front | behind | outside | behind the camera | no-hit pixel, near and far
