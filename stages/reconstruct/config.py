@@ -48,7 +48,7 @@ class ReconstructConfig:
     far_field: str = "auto"  # auto (only if reflections can see past the capture) | on | off
     far_field_count: int = 75000  # far-field Gaussians added at the end of warm-up
     far_field_escape: float = 0.01  # auto: on when more mirror-like reflections than this miss the init
-    reflection_fill_count: int = 8000  # with the far field: Gaussians along open mirror reflections (0 = off)
+    reflection_fill_count: int = 0  # with the far field: Gaussians along open mirror reflections (0 = off)
     radiance_clamp: float = 0.0  # clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: 5.0)
     kernel_p: int = 3  # tracer kernel exponent
     transmittance_threshold: float = 0.01  # tracer truncation
