@@ -57,6 +57,22 @@ def test_resume_is_exact(rooms, tmp_path):
     assert any(not torch.equal(fresh[k], a[k]) for k in a)
 
 
+def test_changed_options_restart_instead_of_resuming(rooms, tmp_path):
+    """Checkpoints of a run with other options (here the learning rate) are not resumed: the run starts from
+    step 0 with a fresh log, and equals a run that never had them. A longer schedule alone still resumes."""
+    out = tmp_path / "run"
+    train(_cfg(rooms, out, lr=5e-3), progress=False)
+    changed = BufferNetPipeline.from_pretrained(train(_cfg(rooms, out), progress=False))
+    steps = [json.loads(l)["step"] for l in (out / "train_log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2, 3, 4]
+    clean = BufferNetPipeline.from_pretrained(train(_cfg(rooms, tmp_path / "clean"), progress=False))
+    a, b = _weights(changed), _weights(clean)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    train(_cfg(rooms, out, iterations=4), progress=False)  # 2 VAE + 4 UNet steps: continues from step 4
+    steps = [json.loads(l)["step"] for l in (out / "train_log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2, 3, 4, 5, 6]
+
+
 def test_batches_depend_on_seed_and_step_only(rooms):
     ds = BufferDataset(make_readers([f"captures:{rooms}"]), 16)
     torch.manual_seed(123)

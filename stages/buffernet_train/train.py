@@ -53,10 +53,10 @@ RESUMABLE_CHANGES = {"iterations", "checkpoint_every", "keep_checkpoints", "log_
 
 
 def _changed_since_checkpoints(out: Path, cfg: TrainConfig) -> bool:
-    """Whether ``out`` holds checkpoints of a run with other options (anything but the schedule's length and
+    """Whether the checkpoints in ``out`` come from a run with other options (anything but the schedule's length and
     logging): resuming them would continue a different training, or fail on other weight shapes."""
     saved = out / "config.json"
-    if latest_checkpoint(out) is None or not saved.is_file():
+    if not saved.is_file():
         return False
     old, new = json.loads(saved.read_text()), cfg.to_dict()
     return any(old.get(k) != v for k, v in new.items() if k not in RESUMABLE_CHANGES)
@@ -97,13 +97,13 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True) -> Path:
         vae, vae_opt = acc.prepare(pipe.vae, vae_opt)
 
     start = 0
-    if resume and _changed_since_checkpoints(out, cfg):
+    ckpt = latest_checkpoint(out) if resume else None
+    if ckpt is not None and _changed_since_checkpoints(out, cfg):
         acc.print(f"{out}: the training options changed since its checkpoints were written; starting afresh")
-        resume = False
-    if not resume or latest_checkpoint(out) is None:  # a fresh run: forget the previous run's checkpoints and log
+        ckpt = None
+    if ckpt is None:  # a fresh run: forget any previous run's checkpoints and log
         shutil.rmtree(out / "checkpoints", ignore_errors=True)
         (out / "train_log.jsonl").unlink(missing_ok=True)
-    ckpt = latest_checkpoint(out) if resume else None
     if ckpt is not None:
         acc.load_state(str(ckpt))
         meta = json.loads((ckpt / "meta.json").read_text())

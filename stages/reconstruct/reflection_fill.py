@@ -100,10 +100,10 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
     pad = 0.05 * (hi - lo).max()
     lo, hi = lo - pad, hi + pad
     step = float((hi - lo).max()) * 1e-3
+    inside = torch.nonzero(((x > lo) & (x < hi)).all(-1)).reshape(-1)
+    x, r, index = x[inside], r[inside], index[inside]
     out = trace_fn(x + step * r, r, gaussians)
-    open_ = out.transmittance.reshape(-1) > open_transmittance
-    inside = ((x > lo) & (x < hi)).all(-1)
-    keep = torch.nonzero(open_ & inside).reshape(-1)
+    keep = torch.nonzero(out.transmittance.reshape(-1) > open_transmittance).reshape(-1)
     stats["open_rays"] = len(keep)
     if len(keep) == 0:
         return None, stats

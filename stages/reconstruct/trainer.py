@@ -235,8 +235,9 @@ class Trainer:
                                                         cfg.reflection_fill_count, seed=cfg.seed)
                 if fill is not None:
                     self._replace(extra=fill)
-                log.info("step %d: added %d Gaussians along %d open mirror reflections (of %d mirror rays)",
-                         self.step, stats["added"], stats["open_rays"], stats["mirror_rays"])
+                log.info("step %d: added %d Gaussians (%d candidates unseen by the cameras) along %d open mirror "
+                         "reflections (of %d mirror rays)", self.step, stats["added"], stats["unseen"],
+                         stats["open_rays"], stats["mirror_rays"])
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)
