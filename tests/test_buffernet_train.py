@@ -57,6 +57,30 @@ def test_resume_is_exact(rooms, tmp_path):
     assert any(not torch.equal(fresh[k], a[k]) for k in a)
 
 
+def test_vae_phase_cosine_schedule_resumes_exactly(rooms, tmp_path):
+    """The VAE learning rate falls from vae_lr to vae_lr x vae_lr_final by a cosine over the VAE phase; a run
+    stopped inside that phase resumes it exactly (the schedule's state is in the checkpoint)."""
+    from stages.buffernet_train.train import vae_lr_factor
+
+    kw = dict(vae_steps=4, iterations=1, checkpoint_every=2, keep_checkpoints=5, vae_lr_final=0.1)
+    cfg = _cfg(rooms, tmp_path / "a", **kw)
+    assert vae_lr_factor(0, cfg) == 1.0 and abs(vae_lr_factor(2, cfg) - 0.55) < 1e-12
+    assert abs(vae_lr_factor(4, cfg) - 0.1) < 1e-12
+    straight = BufferNetPipeline.from_pretrained(train(cfg, progress=False))
+    logged = [json.loads(l) for l in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
+    assert [round(r["lr"] / 1e-3, 6) for r in logged if r["phase"] == "vae"] == \
+        [round(vae_lr_factor(s, cfg), 6) for s in (1, 2, 3, 4)]
+    cfg_b = _cfg(rooms, tmp_path / "b", **kw)
+    train(cfg_b, progress=False)
+    import shutil
+    for step in (4, 5):  # interrupted after step 2, in the middle of the VAE phase
+        shutil.rmtree(tmp_path / "b" / "checkpoints" / f"step_{step:07d}")
+    shutil.rmtree(tmp_path / "b" / "pipeline")
+    resumed = BufferNetPipeline.from_pretrained(train(cfg_b, progress=False))
+    a, b = _weights(straight), _weights(resumed)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_changed_options_restart_instead_of_resuming(rooms, tmp_path):
     """Checkpoints of a run with other options (here the learning rate) are not resumed: the run starts from
     step 0 with a fresh log, and equals a run that never had them. A longer schedule alone still resumes."""
@@ -127,6 +151,8 @@ def test_evaluate_reports_baselines(rooms):
 def test_errors(tmp_path):
     with pytest.raises(ValueError, match="no training data"):
         TrainConfig.from_dict({})
+    with pytest.raises(ValueError, match="vae_lr_final must be in"):
+        TrainConfig.from_dict({"data": ["captures:x"], "vae_lr_final": 0})
     with pytest.raises(ValueError, match="unknown buffernet-train option.*bogus"):
         TrainConfig.from_dict({"data": ["captures:x"], "bogus": 1})
     with pytest.raises(ValueError, match="unknown kind 'flickr'"):

@@ -11,7 +11,8 @@ import torch
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from stages.reconstruct.data import RaySet
-from stages.reconstruct.reflection_fill import box_exit, reflection_fill_gaussians, seen_empty
+from stages.reconstruct.reflection_fill import (box_exit, highlight_fill_gaussians, reflection_fill_gaussians,
+                                                seen_empty)
 
 
 def _gaussians(means: torch.Tensor, scale: float, opacity: float) -> Gaussians:
@@ -61,6 +62,33 @@ def test_fill_follows_open_reflections_only():
     assert (means[:, 2].reshape(-1, 4).diff(dim=1) > 0).all()
     torch.testing.assert_close(fill.diffuse, torch.tensor([[0.2, 0.5, 3.0]]).expand(len(fill), 3))
     assert torch.isfinite(fill.log_scales).all() and (fill.roughness == 1).all()
+
+
+def test_highlight_fill_puts_emitters_where_bright_open_reflections_leave_the_box():
+    """A lamp (radiance 10) over the mirror's |x| > 0.3 parts; the rest reflects dim colour. Under the opaque
+    ceiling (x < 0) the lamp's reflections are blocked: emitters only for the open, bright ones (x > 0.3)."""
+    rays = _mirror_rays()
+    x = rays.origins[:, 0]
+    lamp = x.abs() > 0.3
+    rays.targets["specular"][lamp] = 0.9 * 10.0
+    rays.targets["diffuse"][:] = 0.5  # the brightest lit surface: 0.5, so the lamp (10) stands out
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, _scene())
+    assert stats["mirror_rays"] == 144
+    want = (x > 0.3).sum().item()
+    assert lights is not None and stats["highlight_rays"] == want and len(lights) == stats["added"] == want
+    torch.testing.assert_close(lights.means[:, :2].sort(0).values, rays.origins[x > 0.3, :2].sort(0).values)
+    assert torch.allclose(lights.means[:, 2], torch.full((want,), 1.1), atol=0.01)  # the padded box top
+    torch.testing.assert_close(lights.diffuse, torch.full((want, 3), 10.0))
+    spacing = 1.6 / 11  # the mirror grid: emitters tile the lamp's patch
+    torch.testing.assert_close(lights.log_scales.exp(), torch.full((want, 3), spacing), atol=1e-4, rtol=1e-4)
+    assert (torch.sigmoid(lights.opacity_logits) - 0.5).abs().max() < 1e-6 and (lights.roughness == 1).all()
+
+
+def test_no_highlight_fill_without_bright_reflections():
+    rays = _mirror_rays()
+    rays.targets["diffuse"][:] = 2.0  # the reflections (luminance 0.62) are no brighter than lit surfaces
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, _scene())
+    assert lights is None and stats["added"] == 0 and stats["mirror_rays"] == 144
 
 
 def test_no_fill_without_mirrors():

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
                    "stable-diffusion-2 (diffusers layout) or a saved buffer network")
     t.add_argument("--out", help="output folder (default results/buffernet)")
     for name, typ in (("iterations", int), ("batch_size", int), ("grad_accum", int), ("size", int), ("lr", float),
-                      ("lr_final", float), ("pixel_loss", float), ("vae_steps", int), ("vae_lr", float),
+                      ("lr_final", float), ("pixel_loss", float), ("vae_steps", int), ("vae_lr", float), ("vae_lr_final", float),
                       ("checkpoint_every", int), ("seed", int), ("log_every", int)):
         t.add_argument(f"--{name.replace('_', '-')}", dest=name, type=typ, help=f"see TrainConfig.{name}")
     t.add_argument("--mixed-precision", dest="mixed_precision", choices=("no", "fp16", "bf16"))

@@ -28,6 +28,8 @@ class TrainConfig:
     vae_steps: int = 0             # first train the VAE as an autoencoder for this many steps (only for
                                    # random-weight models: SD2's own VAE stays frozen)
     vae_lr: float = 1e-3
+    vae_lr_final: float = 0.02     # VAE phase: cosine decay from vae_lr to vae_lr x vae_lr_final (a constant lr
+                                   # stalls the autoencoder at the noise floor of its steps; measured in README)
     checkpoint_every: int = 500    # steps between checkpoints (accelerate state: exact resume)
     keep_checkpoints: int = 2
     mixed_precision: str = "no"    # "no" | "fp16" | "bf16" (GPU); CPU trains in fp32
@@ -51,8 +53,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.vae_steps < 0:
             raise ValueError(f"vae_steps must be >= 0, got {self.vae_steps}")
-        if not 0 < self.lr_final <= 1:
-            raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
+        for name in ("lr_final", "vae_lr_final"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be no, fp16 or bf16, got {self.mixed_precision!r}")
 

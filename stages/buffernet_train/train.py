@@ -11,6 +11,7 @@ optimisers, schedulers and RNGs, so resuming from a checkpoint continues exactly
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from pathlib import Path
@@ -62,6 +63,12 @@ def _changed_since_checkpoints(out: Path, cfg: TrainConfig) -> bool:
     return any(old.get(k) != v for k, v in new.items() if k not in RESUMABLE_CHANGES)
 
 
+def vae_lr_factor(step: int, cfg: TrainConfig) -> float:
+    """VAE-phase learning rate / ``vae_lr``: cosine from 1 at step 0 to ``vae_lr_final`` at ``vae_steps``."""
+    t = min(step / max(cfg.vae_steps, 1), 1.0)
+    return cfg.vae_lr_final + (1.0 - cfg.vae_lr_final) * 0.5 * (1.0 + math.cos(math.pi * t))
+
+
 def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean squared error over the valid entries (``mask`` broadcast over channels)."""
     mask = mask.expand_as(pred)
@@ -94,7 +101,8 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True) -> Path:
     if train_vae:
         pipe.vae.requires_grad_(True)
         vae_opt = torch.optim.AdamW(pipe.vae.parameters(), lr=cfg.vae_lr, weight_decay=0.0)
-        vae, vae_opt = acc.prepare(pipe.vae, vae_opt)
+        vae_sched = torch.optim.lr_scheduler.LambdaLR(vae_opt, lambda s: vae_lr_factor(s, cfg))
+        vae, vae_opt, vae_sched = acc.prepare(pipe.vae, vae_opt, vae_sched)
 
     start = 0
     ckpt = latest_checkpoint(out) if resume else None
@@ -124,13 +132,14 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True) -> Path:
             pipe.vae.eval()
         if step < cfg.vae_steps:
             phase, loss = "vae", _vae_step(pipe, vae, vae_opt, dataset, cfg, step, acc)
+            vae_sched.step()
         else:
             phase, loss = "unet", _unet_step(pipe, unet, unet_opt, unet_sched, dataset, prompts, cfg, step, acc)
         running.append(loss)
         if (step + 1) % cfg.log_every == 0 or step + 1 == total:
             mean = sum(running) / len(running)
             running = []
-            lr = unet_sched.get_last_lr()[0]
+            lr = (vae_sched if phase == "vae" else unet_sched).get_last_lr()[0]
             bar.set_postfix(phase=phase, loss=f"{mean:.4f}")
             log.write(json.dumps({"step": step + 1, "phase": phase, "loss": mean, "lr": lr,
                                   "seconds": round(time.perf_counter() - t0, 2)}) + "\n")

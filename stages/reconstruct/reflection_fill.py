@@ -28,6 +28,7 @@ from models.gaussians import Gaussians
 
 SHINY_F0 = 0.3
 SHINY_ROUGHNESS = 0.3
+LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
@@ -134,6 +135,79 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
         log_scales=torch.log(0.5 * spacing.reshape(n, 1).clamp_min(1e-6)).repeat(1, 3).to(**f),
         opacity_logits=torch.full((n,), math.log(0.1 / 0.9), **f),
         diffuse=colour.clamp(0.0, 100.0).to(**f),
+        normals=torch.zeros((n, 3), **f),
+        roughness=torch.ones((n,), **f),
+        f0=torch.full((n, 3), 0.04, **f),
+    ), stats
+
+
+@torch.no_grad()
+def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: float = 3.0, opacity: float = 0.5,
+                             max_count: int = 4000, seed: int = 0,
+                             dtype=torch.float32) -> tuple[Gaussians | None, dict]:
+    """Emitters seen only in mirrors: one Gaussian per HIGHLIGHT mirror ray, where the ray leaves the scene.
+
+    A light that no camera sees directly (a ceiling lamp above an orbit of cameras) has no Gaussians, and
+    lights are what glossy surfaces reflect most. A highlight ray is a mirror-like training pixel whose
+    reflected radiance ``specular / F0`` is brighter (luminance) than ``brightness`` x the 99th percentile of
+    the training views' diffuse radiance (brighter than any lit surface they see) and whose reflection is
+    still open through the warmed-up model (transmittance > 0.5). Along it the light's distance is ambiguous
+    (a small mirror's rays from all views form one thin bundle: measured on the demo, dark neighbouring rays
+    carve nothing), so the Gaussian goes where the ray leaves the box of the current Gaussians (padded 5 %),
+    at the room's boundary, where lamps hang. Each starts emitting the pixel's reflected radiance (diffuse
+    colour), with ``opacity``, matte (roughness 1, F0 0.04), normal 0, and scale the distance to its
+    nearest neighbour (so the Gaussians tile the light's patch). Positions a training camera sees to be
+    empty are dropped (``seen_empty``)."""
+    stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0}
+    t = rays.targets
+    found = mirror_rays(rays, max_rays=len(rays), seed=seed)
+    if found is None or "specular" not in t or "diffuse" not in t:
+        return None, stats
+    x, r, index = found
+    stats["mirror_rays"] = len(index)
+    lum = torch.tensor(LUMINANCE, dtype=t["diffuse"].dtype)
+    gen = torch.Generator().manual_seed(seed + 2)
+    direct = torch.nonzero(rays.mask).reshape(-1)
+    direct = direct[torch.randperm(len(direct), generator=gen)[:200000]]
+    level = float(torch.quantile(t["diffuse"][direct] @ lum, 0.99)) if len(direct) else 0.0
+    radiance = t["specular"][index] / t["f0"][index].clamp_min(0.05)
+    bright = torch.nonzero((radiance @ lum) > brightness * max(level, 1e-6)).reshape(-1)
+    means = gaussians.means.detach()
+    lo, hi = means.min(0).values, means.max(0).values
+    pad = 0.05 * (hi - lo).max()
+    lo, hi = lo - pad, hi + pad
+    step = float((hi - lo).max()) * 1e-3
+    bright = bright[((x[bright] > lo) & (x[bright] < hi)).all(-1)]
+    if len(bright) == 0:
+        return None, stats
+    x, r, radiance = x[bright], r[bright], radiance[bright]
+    out = trace_fn(x + step * r, r, gaussians)
+    keep = torch.nonzero(out.transmittance.reshape(-1) > 0.5).reshape(-1)
+    keep = keep[torch.randperm(len(keep), generator=gen)[:max_count]]
+    stats["highlight_rays"] = len(keep)
+    if len(keep) == 0:
+        return None, stats
+    x, r, radiance = x[keep], r[keep], radiance[keep]
+    pos = x + (box_exit(x, r, lo, hi) - 2 * step)[:, None] * r
+    unseen = ~seen_empty(pos, rays.views)
+    pos, radiance = pos[unseen], radiance[unseen]
+    n = len(pos)
+    stats["added"] = n
+    if n == 0:
+        return None, stats
+    if n > 1:
+        d = torch.cdist(pos, pos)
+        d.fill_diagonal_(float("inf"))
+        scale = d.min(dim=1).values.clamp(step, 100 * step)  # at most 1/10 of the box
+    else:
+        scale = torch.full((1,), 10 * step, dtype=pos.dtype)
+    f = dict(dtype=dtype)
+    return Gaussians(
+        means=pos.to(**f),
+        quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
+        log_scales=torch.log(scale).reshape(n, 1).repeat(1, 3).to(**f),
+        opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
+        diffuse=radiance.clamp(0.0, 1000.0).to(**f),
         normals=torch.zeros((n, 3), **f),
         roughness=torch.ones((n,), **f),
         f0=torch.full((n, 3), 0.04, **f),

@@ -27,7 +27,7 @@ from models.tracer.output import TraceOutput
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
-from .reflection_fill import mirror_rays, reflection_fill_gaussians
+from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 log = logging.getLogger("stages.reconstruct")
 
@@ -238,6 +238,13 @@ class Trainer:
                 log.info("step %d: added %d Gaussians (%d candidates unseen by the cameras) along %d open mirror "
                          "reflections (of %d mirror rays)", self.step, stats["added"], stats["unseen"],
                          stats["open_rays"], stats["mirror_rays"])
+            if cfg.highlight_fill:
+                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, self.gaussians(), seed=cfg.seed)
+                if lights is not None:
+                    self._replace(extra=lights)
+                log.info("step %d: added %d emitting Gaussians where %d open highlight reflections (of %d mirror "
+                         "rays) leave the scene", self.step, stats["added"], stats["highlight_rays"],
+                         stats["mirror_rays"])
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)
