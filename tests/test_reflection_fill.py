@@ -12,7 +12,7 @@ from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from stages.reconstruct.data import RaySet
 from stages.reconstruct.reflection_fill import (box_exit, highlight_fill_gaussians, reflection_fill_gaussians,
-                                                seen_empty)
+                                                seen_empty, sweep_box_scale)
 
 
 def _gaussians(means: torch.Tensor, scale: float, opacity: float) -> Gaussians:
@@ -82,6 +82,50 @@ def test_highlight_fill_puts_emitters_where_bright_open_reflections_leave_the_bo
     spacing = 1.6 / 11  # the mirror grid: emitters tile the lamp's patch
     torch.testing.assert_close(lights.log_scales.exp(), torch.full((want, 3), spacing), atol=1e-4, rtol=1e-4)
     assert (torch.sigmoid(lights.opacity_logits) - 0.5).abs().max() < 1e-6 and (lights.roughness == 1).all()
+
+
+def _lamp_over_mirror(lamp_z: float = 1.6, half: float = 0.4) -> RaySet:
+    """Five cameras (four of them off to the sides) looking at a floor mirror (z = -0.9); the square lamp
+    |x|, |y| < ``half`` at height ``lamp_z`` (above the scene's box, whose top is z = 1): a mirror pixel is
+    at 1500 random points; bright (10) when its reflection hits the lamp, dim (0.2) otherwise."""
+    xy = torch.rand(1500, 2, generator=torch.Generator().manual_seed(0)) * 1.6 - 0.8  # irregular, like pixels
+    on_mirror = torch.cat([xy, torch.full((len(xy), 1), -0.9)], -1)
+    cams = torch.tensor([[0.0, 0.0, 0.8], [0.6, 0.0, 0.6], [-0.6, 0.0, 0.6], [0.0, 0.6, 0.6], [0.0, -0.6, 0.6]])
+    origins = cams.repeat_interleave(len(on_mirror), 0)
+    mirror = on_mirror.repeat(len(cams), 1)
+    dist = (mirror - origins).norm(dim=-1, keepdim=True)
+    dirs = (mirror - origins) / dist
+    refl = dirs * torch.tensor([1.0, 1.0, -1.0])
+    at_lamp = mirror + ((lamp_z - mirror[:, 2]) / refl[:, 2])[:, None] * refl
+    lit = (at_lamp[:, :2].abs() < half).all(-1)
+    n = len(origins)
+    radiance = torch.where(lit[:, None], torch.full((n, 3), 10.0), torch.full((n, 3), 0.2))
+    targets = {"depth": dist, "normal": torch.tensor([[0.0, 0, 1]]).repeat(n, 1), "f0": torch.full((n, 3), 0.9),
+               "roughness": torch.zeros(n, 1), "specular": 0.9 * radiance, "diffuse": torch.full((n, 3), 0.5)}
+    return RaySet(origins, dirs, torch.ones(n, dtype=torch.bool), targets,
+                  torch.arange(len(cams)).repeat_interleave(len(on_mirror)), [])
+
+
+def test_highlight_fill_finds_a_lamp_beyond_the_box_by_plane_sweep():
+    """The lamp hangs 0.6 above the box of the Gaussians: at the box's top the views' highlight exits would
+    not overlap; the sweep finds the box scale where they do, so the emitters lie on the lamp."""
+    corners = torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+    scene = _gaussians(corners, 0.01, 0.1)  # faint: every reflection is open
+    rays = _lamp_over_mirror()
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene)
+    assert lights is not None and stats["highlight_rays"] > 200, stats
+    assert abs(stats["box_scale"] * 1.1 - 1.6) < 0.06  # box half-size 1.1 (padded), lamp at 1.6
+    assert (lights.means[:, 2] - 1.6).abs().max() < 0.06
+    assert (lights.means[:, :2].abs() < 0.4 + 0.05).all()  # on the lamp's square
+    _, purity = sweep_box_scale(*_open_rays(rays), torch.full((3,), -1.1), torch.full((3,), 1.1))
+    assert purity[0] < max(purity) - 0.05  # the unscaled box is clearly worse
+
+
+def _open_rays(rays: RaySet):
+    d = rays.dirs
+    x = rays.origins + d * rays.targets["depth"]
+    r = d * torch.tensor([1.0, 1.0, -1.0])
+    return x, r, rays.targets["specular"][:, 0] > 1.0
 
 
 def test_no_highlight_fill_without_bright_reflections():

@@ -226,12 +226,14 @@ class Trainer:
         cfg = self.config
         reflections = self.reflections and self.step >= cfg.warmup
         if reflections and self.far_field and not self.far_field_added:
+            # the fills look at the captured scene alone: its box, and its transmittance (not the far shell's)
+            scene = self.gaussians()
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed)
             self._replace(extra=ff)
             self.far_field_added = True
             log.info("step %d: added %d far-field Gaussians", self.step, len(ff))
             if cfg.reflection_fill_count > 0:
-                fill, stats = reflection_fill_gaussians(self.rays, self.backend.trace, self.gaussians(),
+                fill, stats = reflection_fill_gaussians(self.rays, self.backend.trace, scene,
                                                         cfg.reflection_fill_count, seed=cfg.seed)
                 if fill is not None:
                     self._replace(extra=fill)
@@ -239,12 +241,12 @@ class Trainer:
                          "reflections (of %d mirror rays)", self.step, stats["added"], stats["unseen"],
                          stats["open_rays"], stats["mirror_rays"])
             if cfg.highlight_fill:
-                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, self.gaussians(), seed=cfg.seed)
+                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed)
                 if lights is not None:
                     self._replace(extra=lights)
                 log.info("step %d: added %d emitting Gaussians where %d open highlight reflections (of %d mirror "
-                         "rays) leave the scene", self.step, stats["added"], stats["highlight_rays"],
-                         stats["mirror_rays"])
+                         "rays) end together (box scale %.2f)", self.step, stats["added"], stats["highlight_rays"],
+                         stats["mirror_rays"], stats["box_scale"])
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)
