@@ -31,6 +31,33 @@ SHINY_ROUGHNESS = 0.3
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
+def scene_box(gaussians: Gaussians) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """(lo, hi, step): the box of the Gaussians' means padded by 5 % of its largest side, and 1/1000 of that
+    side (the small offset the fills step off surfaces and box faces by)."""
+    means = gaussians.means.detach()
+    lo, hi = means.min(0).values, means.max(0).values
+    pad = 0.05 * (hi - lo).max()
+    lo, hi = lo - pad, hi + pad
+    return lo, hi, float((hi - lo).max()) * 1e-3
+
+
+def matte_gaussians(pos: torch.Tensor, scale: torch.Tensor, opacity: float, colour: torch.Tensor,
+                    dtype=torch.float32) -> Gaussians:
+    """Isotropic Gaussians at ``pos`` [N, 3] with per-Gaussian ``scale`` [N], ``opacity`` and diffuse ``colour``
+    [N, 3]: matte (roughness 1, F0 0.04), normal 0 (seen, not mirrors)."""
+    n, f = len(pos), dict(dtype=dtype)
+    return Gaussians(
+        means=pos.to(**f),
+        quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
+        log_scales=torch.log(scale).reshape(n, 1).repeat(1, 3).to(**f),
+        opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
+        diffuse=colour.to(**f),
+        normals=torch.zeros((n, 3), **f),
+        roughness=torch.ones((n,), **f),
+        f0=torch.full((n, 3), 0.04, **f),
+    )
+
+
 def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """(points on the mirrors [M, 3], unit reflected directions [M, 3], ray indices [M]) for up to
     ``max_rays`` random mirror-like training pixels (from the depth / normal / F0 / roughness buffers), or
@@ -96,11 +123,7 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
         return None, stats
     x, r, index = found
     stats["mirror_rays"] = len(index)
-    means = gaussians.means.detach()
-    lo, hi = means.min(0).values, means.max(0).values
-    pad = 0.05 * (hi - lo).max()
-    lo, hi = lo - pad, hi + pad
-    step = float((hi - lo).max()) * 1e-3
+    lo, hi, step = scene_box(gaussians)
     inside = torch.nonzero(((x > lo) & (x < hi)).all(-1)).reshape(-1)
     x, r, index = x[inside], r[inside], index[inside]
     out = trace_fn(x + step * r, r, gaussians)
@@ -126,19 +149,8 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
     targets = rays.targets
     colour = targets["specular"][index] / targets["f0"][index].clamp_min(0.05) if "specular" in targets \
         else torch.full((len(index), 3), 0.2, dtype=pos.dtype)
-    n = len(pos)
-    stats["added"] = n
-    f = dict(dtype=dtype)
-    return Gaussians(
-        means=pos.to(**f),
-        quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
-        log_scales=torch.log(0.5 * spacing.reshape(n, 1).clamp_min(1e-6)).repeat(1, 3).to(**f),
-        opacity_logits=torch.full((n,), math.log(0.1 / 0.9), **f),
-        diffuse=colour.clamp(0.0, 100.0).to(**f),
-        normals=torch.zeros((n, 3), **f),
-        roughness=torch.ones((n,), **f),
-        f0=torch.full((n, 3), 0.04, **f),
-    ), stats
+    stats["added"] = len(pos)
+    return matte_gaussians(pos, 0.5 * spacing.clamp_min(1e-6), 0.1, colour.clamp(0.0, 100.0), dtype), stats
 
 
 def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
@@ -198,11 +210,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     level = max(float(torch.quantile(t["diffuse"][direct] @ lum, 0.99)) if len(direct) else 0.0, 1e-6)
     radiance = t["specular"][index] / t["f0"][index].clamp_min(0.05)
     bright = (radiance @ lum) > brightness * level
-    means = gaussians.means.detach()
-    lo, hi = means.min(0).values, means.max(0).values
-    pad = 0.05 * (hi - lo).max()
-    lo, hi = lo - pad, hi + pad
-    step = float((hi - lo).max()) * 1e-3
+    lo, hi, step = scene_box(gaussians)
     use = ((x > lo) & (x < hi)).all(-1) & (bright | ((radiance @ lum) < level))
     if not bright[use].any():
         return None, stats
@@ -233,14 +241,4 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
         scale = d.min(dim=1).values.clamp(step, 100 * step)  # at most 1/10 of the box
     else:
         scale = torch.full((1,), 10 * step, dtype=pos.dtype)
-    f = dict(dtype=dtype)
-    return Gaussians(
-        means=pos.to(**f),
-        quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
-        log_scales=torch.log(scale).reshape(n, 1).repeat(1, 3).to(**f),
-        opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
-        diffuse=radiance.clamp(0.0, 1000.0).to(**f),
-        normals=torch.zeros((n, 3), **f),
-        roughness=torch.ones((n,), **f),
-        f0=torch.full((n, 3), 0.04, **f),
-    ), stats
+    return matte_gaussians(pos, scale, opacity, radiance.clamp(0.0, 1000.0), dtype), stats
