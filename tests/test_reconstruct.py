@@ -11,7 +11,7 @@ from stages.config import load_config
 from stages.init import InitConfig, dense_init
 from stages.reconstruct import ReconstructConfig, Trainer, train
 from stages.reconstruct.data import build_rayset
-from stages.reconstruct.trainer import psnr
+from stages.reconstruct.trainer import REFERENCE_HEIGHT, psnr
 from stages.synth import render_capture
 
 SMALL = dict(iterations=160, warmup=80, rays_per_step=768, prune_from=100, prune_every=50, log_every=10,
@@ -23,6 +23,15 @@ SMALL = dict(iterations=160, warmup=80, rays_per_step=768, prune_from=100, prune
 def demo(tmp_path_factory):
     cfg = load_config("demo", presets=["ci"])
     capture = render_capture(cfg["synth"], tmp_path_factory.mktemp("demo") / "capture", progress=False)
+    init, _ = dense_init(capture, InitConfig.from_dict(cfg["init"]))
+    return capture, init
+
+
+@pytest.fixture(scope="module")
+def book(tmp_path_factory):
+    """mirror_book at CI size: the training cameras see the back of the room only in the mirror."""
+    cfg = load_config("mirror_book", presets=["ci"])
+    capture = render_capture(cfg["synth"], tmp_path_factory.mktemp("book") / "capture", progress=False)
     init, _ = dense_init(capture, InitConfig.from_dict(cfg["init"]))
     return capture, init
 
@@ -90,7 +99,7 @@ def test_config_errors():
         ReconstructConfig.from_dict({"loss": {"colour": 1.0}})
 
 
-def test_far_field_only_when_reflections_escape(demo, tmp_path):
+def test_far_field_only_when_reflections_escape(demo, book):
     capture, init = demo
     # demo: the orbiting cameras never see the ceiling its mirror sphere reflects; a threshold above the
     # measured escape fraction calls it closed
@@ -98,9 +107,31 @@ def test_far_field_only_when_reflections_escape(demo, tmp_path):
     assert not closed.far_field
     assert any(d.startswith("far field: off, closed scene") for d in closed.decisions), closed.decisions
     # mirror_book: the mirror reflects the part of the room behind the training cameras, never captured
-    cfg = load_config("mirror_book", presets=["ci"])
-    book = render_capture(cfg["synth"], tmp_path / "book", progress=False)
-    book_init, _ = dense_init(book, InitConfig.from_dict(cfg["init"]))
-    opened = Trainer(book, book_init, ReconstructConfig.from_dict(SMALL), tracer())
+    opened = Trainer(*book, ReconstructConfig.from_dict(SMALL), tracer())
     assert opened.far_field
     assert any("mirror-like reflection rays leave the initial geometry" in d for d in opened.decisions), opened.decisions
+
+
+def test_pruning_keeps_what_the_views_see_only_in_mirrors(book):
+    """The far-field Gaussians behind mirror_book's walls are seen by no training camera directly, only in the
+    mirror. Pruning by the primary rays' blending weight alone removed every one of them (and every object seen
+    only in a mirror); after warm-up their weight in the traced reflections counts too."""
+    trainer = Trainer(*book, ReconstructConfig.from_dict(dict(SMALL, warmup=0, mirror_stereo_count=0,
+                                                              highlight_fill=False)), tracer())
+    n_scene = len(trainer.params["means"])
+    trainer.train_step()  # reflections on: adds the far field (appended: the fills are off)
+    assert trainer.far_field_added
+    with torch.no_grad():  # as if trained: opaque walls, the back wall's Gaussians mirror-like
+        trainer.params["opacity_logits"][:n_scene] = 6.0
+        on_mirror = trainer.params["means"][:, 2] < -2.3
+        trainer.params["f0"][on_mirror] = 0.9
+        trainer.params["roughness"][on_mirror] = 0.02
+        trainer.params["normals"][on_mirror] = torch.tensor([0.0, 0.0, 1.0])
+    far = torch.arange(len(trainer.params["means"])) >= n_scene
+    views = list(range(len(trainer.rays.views)))
+    direct = trainer.blending_weights(views)
+    both = trainer.blending_weights(views, reflections=True)
+    threshold = trainer.config.prune_min_weight * (trainer.rays.views[0].camera.height / REFERENCE_HEIGHT) ** 2
+    seen_direct, seen_both = int((direct[far] >= threshold).sum()), int((both[far] >= threshold).sum())
+    assert seen_both > 3 * seen_direct + 100  # the mirror sees far more of the far field than the holes of the walls
+    assert torch.all(both[~far] >= direct[~far] - 1e-6)

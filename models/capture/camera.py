@@ -54,6 +54,15 @@ class Camera:
         d = self.camera_directions() @ self.c2w[:3, :3].T
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(u, v, z): continuous pixel coordinates (column, row; pixel (i, j) spans [i, i + 1) x [j, j + 1)) and
+        the depth in front of the camera (z > 0 is in front) of world ``points`` [N, 3]; the inverse of
+        ``camera_directions``. u and v are meaningless where z <= 0. # [N] float64 each"""
+        local = (np.asarray(points, dtype=np.float64) - self.origin) @ self.rotation  # world -> camera
+        z = -local[:, 2]
+        zs = np.where(z > 1e-12, z, 1.0)
+        return self.fl_x * local[:, 0] / zs + self.cx, -self.fl_y * local[:, 1] / zs + self.cy, z
+
     def check(self, where: str) -> None:
         """Raise CaptureError (naming ``where``) unless intrinsics and pose are valid."""
         if self.width <= 0 or self.height <= 0:

@@ -49,6 +49,7 @@ class ReconstructConfig:
     far_field_count: int = 75000  # far-field Gaussians added at the end of warm-up
     far_field_escape: float = 0.01  # auto: on when more mirror-like reflections than this miss the init
     reflection_fill_count: int = 0  # with the far field: Gaussians along open mirror reflections (0 = off)
+    mirror_stereo_count: int = 8000  # with the far field: Gaussians placed by stereo on planar mirrors (0 = off)
     highlight_fill: bool = True  # with the far field: emitters seen only in mirrors (reflection_fill.py)
     radiance_clamp: float = 0.0  # clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: 5.0)
     kernel_p: int = 3  # tracer kernel exponent

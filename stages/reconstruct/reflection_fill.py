@@ -91,13 +91,9 @@ def seen_empty(points: torch.Tensor, views, margin: float = 0.9) -> torch.Tensor
     p = points.detach().double().cpu().numpy()
     for view in views:
         cam = view.camera
-        local = (p - cam.origin) @ cam.rotation  # world -> camera (OpenGL: looking down -z)
-        z = -local[:, 2]
-        front = z > 1e-9
-        zs = np.where(front, z, 1.0)
-        col = np.floor(cam.fl_x * local[:, 0] / zs + cam.cx).astype(np.int64)
-        row = np.floor(-cam.fl_y * local[:, 1] / zs + cam.cy).astype(np.int64)
-        inside = front & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        u, v, z = cam.project(p)
+        col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        inside = (z > 1e-9) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
         if not inside.any() or "depth" not in view.buffers:
             continue
         r, c = row[inside], col[inside]

@@ -27,6 +27,7 @@ from models.tracer.output import TraceOutput
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
+from .mirror_stereo import mirror_stereo_gaussians
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 log = logging.getLogger("stages.reconstruct")
@@ -240,6 +241,13 @@ class Trainer:
                 log.info("step %d: added %d Gaussians (%d candidates unseen by the cameras) along %d open mirror "
                          "reflections (of %d mirror rays)", self.step, stats["added"], stats["unseen"],
                          stats["open_rays"], stats["mirror_rays"])
+            if cfg.mirror_stereo_count > 0:
+                fill, stats = mirror_stereo_gaussians(self.rays, self.backend.trace, scene, cfg.mirror_stereo_count,
+                                                      seed=cfg.seed)
+                if fill is not None:
+                    self._replace(extra=fill)
+                log.info("step %d: added %d Gaussians where the reflections of %d planar-mirror views agree in "
+                         "depth (%d pixels matched)", self.step, stats["added"], stats["planar_views"], stats["kept"])
             if cfg.highlight_fill:
                 lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed)
                 if lights is not None:
@@ -265,16 +273,24 @@ class Trainer:
         metrics["gaussians"] = len(self.params["means"])
         return metrics
 
-    def blending_weights(self, views: list[int]) -> torch.Tensor:
-        """[N] accumulated blending weight per Gaussian, averaged over ``views`` (d sum(diffuse_R) / d diffuse_i,R)."""
+    def blending_weights(self, views: list[int], reflections: bool = False) -> torch.Tensor:
+        """[N] accumulated blending weight per Gaussian, averaged over ``views`` (d sum(diffuse_R) / d diffuse_i,R);
+        with ``reflections``, plus its weight in the traced reflections (d sum(specular_R) / d diffuse_i,R:
+        bounce Gaussians are the radiance cache), so what the views see only in mirrors is kept too."""
         acc = torch.zeros(len(self.params["means"]))
+        path_cfg = PathConfig(max_path_length=self.config.max_path_length, sampler=self.config.sampler)
         for v in views:
             g = Gaussians(**{k: p.detach().clone().requires_grad_(k == "diffuse") for k, p in self.params.items()})
             self.backend.update(g)
             rays = self.rays.view_rays(v)
-            out = self.backend.trace(rays.origins, rays.dirs, g)
-            (grad,) = torch.autograd.grad(out.diffuse[:, 0].sum(), g.diffuse)
-            acc += grad[:, 0]
+            if reflections:
+                out = trace_paths(self.backend.trace, rays.origins, rays.dirs, g, path_cfg, self.generator)
+                seen = out.primary.diffuse[:, 0].sum() + out.specular[:, 0].sum()
+            else:
+                seen = self.backend.trace(rays.origins, rays.dirs, g).diffuse[:, 0].sum()
+            (grad,) = torch.autograd.grad(seen, g.diffuse, allow_unused=True)
+            if grad is not None:
+                acc += grad[:, 0]
         return acc / max(len(views), 1)
 
     def prune(self) -> int:
@@ -282,7 +298,8 @@ class Trainer:
         views = torch.randperm(len(self.rays.views), generator=self.generator)[:n_views].tolist()
         height = self.rays.views[0].camera.height
         threshold = self.config.prune_min_weight * (height / REFERENCE_HEIGHT) ** 2
-        keep = self.blending_weights(views) >= threshold
+        reflections = self.reflections and self.step >= self.config.warmup
+        keep = self.blending_weights(views, reflections) >= threshold
         removed = int((~keep).sum())
         if removed and keep.any():
             self._replace(keep=keep)

@@ -1,0 +1,224 @@
+"""Objects seen only in planar mirrors, placed by multi-view stereo on their reflections.
+
+A training camera that looks into a planar mirror sees the room behind it as a *virtual* camera, its
+reflection about the mirror's plane, would see it directly. So the reflected images of several views are an
+ordinary multi-view capture of the part of the scene no camera faces, and a plane sweep finds its depth: for
+each open mirror pixel of a reference view (a mirror-like pixel, F0 > 0.3 and roughness < 0.3, whose perfect
+reflection leaves the warmed-up Gaussians), candidate points along its reflected ray are reflected about each
+other view's mirror plane and projected into that view; where that view sees them in its own open mirror
+pixels, the colours of the two reflections (``specular / F0``) are compared. At the object's true depth
+they agree in every view that sees it; elsewhere the other views look at different texture. Per pixel, the
+cost at each depth is the mean of the other views' relative colour differences (or of their better
+``best_fraction``, robust to occlusion but less decisive: on mirror_book at ``ratio`` 0.8, 0.5 kept 132 points on the book
+where all views kept 410), averaged over a small window of the reference image (textures match as patches, not pixels),
+and the depth kept is the best one when it is clearly better than every depth away from it (``ratio``) and
+good in itself (``max_cost``); untextured surfaces have no clear best and add nothing. Depths that a
+training camera sees to be empty (``seen_empty``) are not candidates.
+
+Each kept pixel gives one matte Gaussian there: the reflection's colour as diffuse colour, the size of a pixel
+at its virtual distance. A view's mirror is the least-squares plane through its mirror pixels (points at
+depth along their rays); a view whose mirror pixels are not on one plane (a curved mirror, several mirrors)
+takes no part.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy.ndimage import uniform_filter
+
+from models.gaussians import Gaussians
+
+from .reflection_fill import LUMINANCE, SHINY_F0, SHINY_ROUGHNESS, box_exit, matte_gaussians, scene_box, seen_empty
+
+
+class MirrorView:
+    """One training view's planar mirror: its open mirror pixels, their mirror points, reflected directions
+    and reflected colours, and the plane (unit normal towards the camera, offset)."""
+
+    def __init__(self, view, open_mask: np.ndarray, normal: np.ndarray, offset: float):
+        b, cam = view.buffers, view.camera
+        self.camera = cam
+        self.open = open_mask  # [H, W] bool
+        d = cam.ray_directions()
+        n = b["normal"] / np.maximum(np.linalg.norm(b["normal"], axis=-1, keepdims=True), 1e-12)
+        self.points = cam.origin + d * b["depth"]  # [H, W, 3]
+        self.dirs = d - 2 * (d * n).sum(-1, keepdims=True) * n
+        self.dirs /= np.maximum(np.linalg.norm(self.dirs, axis=-1, keepdims=True), 1e-12)
+        self.colour = b["specular"] / np.maximum(b["f0"], 0.05)
+        self.distance = b["depth"][..., 0]  # camera to mirror
+        self.normal, self.offset = normal, offset
+
+    def look_up(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(valid [N] bool, colour [N, 3]): where this view sees ``points`` [N, 3] in its open mirror pixels
+        (the point in front of the mirror, its reflection about the plane projected into the camera), and the
+        reflected colour there, bilinear between the four nearest pixel centres (all four open)."""
+        side = points @ self.normal - self.offset
+        virtual = points - 2 * side[:, None] * self.normal
+        u, v, z = self.camera.project(virtual)
+        h, w = self.open.shape
+        u, v = u - 0.5, v - 0.5  # pixel centres at integers
+        c0, r0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        valid = (side > 0) & (z > 0) & (c0 >= 0) & (c0 < w - 1) & (r0 >= 0) & (r0 < h - 1)
+        c0, r0 = np.where(valid, c0, 0), np.where(valid, r0, 0)
+        fu, fv = (u - c0)[:, None], (v - r0)[:, None]
+        colour = np.zeros((len(points), 3))
+        for dr, dc, wt in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv), (1, 1, fu * fv)):
+            valid &= self.open[r0 + dr, c0 + dc]
+            colour += wt * self.colour[r0 + dr, c0 + dc]
+        return valid, colour
+
+
+def fit_plane(points: np.ndarray, towards: np.ndarray, tol: float) -> tuple[np.ndarray, float] | None:
+    """(unit normal facing ``towards``, offset) of the least-squares plane through ``points`` [N, 3], or None
+    when the 99th percentile of their distances to it exceeds ``tol`` (not one plane) or N < 3."""
+    if len(points) < 3:
+        return None
+    c = points.mean(0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    n = vt[2]
+    if np.quantile(np.abs((points - c) @ n), 0.99) > tol:
+        return None
+    if (towards - c) @ n < 0:
+        n = -n
+    return n, float(n @ c)
+
+
+def mirror_views(rays, trace_fn, gaussians: Gaussians, min_pixels: int = 64, open_transmittance: float = 0.5,
+                 max_normal_deg: float = 10.0) -> tuple[list[MirrorView | None], dict]:
+    """Per training view, its ``MirrorView`` or None: no buffers, fewer than ``min_pixels`` mirror pixels, or not
+    one plane (the points off the least-squares plane, or more than a tenth of the normals more than
+    ``max_normal_deg`` from its normal)."""
+    lo, hi, step = scene_box(gaussians)
+    need = ("depth", "normal", "f0", "roughness", "specular")
+    out, planar = [], 0
+    for view in rays.views:
+        b = view.buffers
+        if not all(k in b for k in need):
+            out.append(None)
+            continue
+        hit = b["mask"][..., 0] > 0.5 if "mask" in b else b["depth"][..., 0] > 0
+        shiny = hit & (b["f0"].mean(-1) > SHINY_F0) & (b["roughness"][..., 0] < SHINY_ROUGHNESS)
+        if shiny.sum() < min_pixels:
+            out.append(None)
+            continue
+        cam = view.camera
+        pts = (cam.origin + cam.ray_directions() * b["depth"])[shiny]
+        plane = fit_plane(pts, cam.origin, tol=float(hi[0] - lo[0] + hi[1] - lo[1] + hi[2] - lo[2]) * 2e-3)
+        if plane is None:
+            out.append(None)
+            continue
+        mv = MirrorView(view, shiny, *plane)
+        n = b["normal"][shiny] / np.maximum(np.linalg.norm(b["normal"][shiny], axis=-1, keepdims=True), 1e-12)
+        if np.quantile(np.abs(n @ mv.normal), 0.1) < math.cos(math.radians(max_normal_deg)):
+            # the normals say curved (or several mirrors) where the points look flat
+            out.append(None)
+            continue
+        x = torch.from_numpy(mv.points[shiny]).float()
+        r = torch.from_numpy(mv.dirs[shiny]).float()
+        if trace_fn is not None:
+            t = trace_fn(x + step * r, r, gaussians).transmittance.reshape(-1).numpy()
+            opened = np.zeros_like(shiny)
+            opened[shiny] = t > open_transmittance
+            mv.open = opened
+        planar += 1
+        out.append(mv)
+    return out, {"planar_views": planar}
+
+
+def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray, hi: np.ndarray, t_min: float,
+               depths: int = 96, window: int = 2, min_views: int = 3, ratio: float = 0.9,
+               max_cost: float = 0.2, best_fraction: float = 1.0, min_contrast: float = 0.1,
+               max_basin: float = 0.4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plane sweep of one reference view's open mirror pixels (module docstring). Returns the kept pixels'
+    (points [M, 3], colours [M, 3], virtual distances [M])."""
+    h, w = ref.open.shape
+    pix = np.nonzero(ref.open.reshape(-1))[0]
+    x = ref.points.reshape(-1, 3)[pix]
+    r = ref.dirs.reshape(-1, 3)[pix]
+    s0 = ref.distance.reshape(-1)[pix]
+    t_max = box_exit(torch.from_numpy(x), torch.from_numpy(r), torch.from_numpy(lo), torch.from_numpy(hi)).numpy()
+    t_max = np.maximum(t_max, 2 * t_min)
+    # uniform in inverse virtual distance (uniform disparity for the virtual cameras)
+    k = np.linspace(0.0, 1.0, depths)
+    inv = 1 / (s0 + t_min)[:, None] + k[None, :] * (1 / (s0 + t_max) - 1 / (s0 + t_min))[:, None]
+    t = 1 / inv - s0[:, None]  # [P, K]
+    pts = (x[:, None, :] + t[..., None] * r[:, None, :]).reshape(-1, 3)
+    colour = np.repeat(ref.colour.reshape(-1, 3)[pix], depths, axis=0)
+    costs = []
+    for other in others:
+        valid, c = other.look_up(pts)
+        diff = np.abs(c - colour).sum(-1) / np.maximum((c + colour).sum(-1), 0.03)
+        costs.append(np.where(valid, diff, np.inf))
+    costs = np.sort(np.stack(costs), axis=0)  # [U, P*K], invalid (inf) last
+    n_valid = np.isfinite(costs).sum(0)
+    m = np.maximum(min_views, np.ceil(n_valid * best_fraction)).astype(np.int64)
+    cum = np.cumsum(np.where(np.isfinite(costs), costs, 0.0), axis=0)
+    cost = cum[np.minimum(m, len(costs)) - 1, np.arange(costs.shape[1])] / m
+    cost[(n_valid < min_views) | seen_empty(torch.from_numpy(pts), views).numpy()] = np.nan
+    # window aggregation over the reference image (mean of the valid costs around each pixel, per depth)
+    grid = np.full((h * w, depths), np.nan)
+    grid[pix] = cost.reshape(-1, depths)
+    grid = grid.reshape(h, w, depths)
+    ok = np.isfinite(grid)
+    size = (2 * window + 1, 2 * window + 1, 1)
+    total = uniform_filter(np.where(ok, grid, 0.0), size=size, mode="constant")
+    count = uniform_filter(ok.astype(np.float64), size=size, mode="constant")
+    agg = np.where(ok & (count > 0), total / np.maximum(count, 1e-12), np.inf).reshape(h * w, depths)[pix]
+    best = np.argmin(agg, axis=1)
+    rows = np.arange(len(pix))
+    c1 = agg[rows, best]
+    # the basin of the best depth: outwards from it while the cost does not fall; c2 = best cost outside it
+    left, right = best.copy(), best.copy()
+    for _ in range(depths):
+        step_l = (left > 0) & (agg[rows, np.maximum(left - 1, 0)] >= agg[rows, left])
+        step_r = (right < depths - 1) & (agg[rows, np.minimum(right + 1, depths - 1)] >= agg[rows, right])
+        if not (step_l.any() or step_r.any()):
+            break
+        left, right = left - step_l, right + step_r
+    k = np.arange(depths)[None, :]
+    c2 = np.where((k < left[:, None]) | (k > right[:, None]), agg, np.inf).min(1)
+    # texture: the relative spread of the reflected luminance over the window (flat colour matches anywhere)
+    lum = np.where(ref.open, ref.colour @ np.array(LUMINANCE), 0.0)
+    size2, n = (2 * window + 1,) * 2, uniform_filter(ref.open.astype(np.float64), size=(2 * window + 1,) * 2)
+    mean = uniform_filter(lum, size=size2) / np.maximum(n, 1e-12)
+    var = uniform_filter(lum ** 2, size=size2) / np.maximum(n, 1e-12) - mean ** 2
+    contrast = (np.sqrt(np.maximum(var, 0.0)) / np.maximum(mean, 1e-6)).reshape(-1)[pix]
+    keep = np.isfinite(c2) & (c1 < max_cost) & (c1 < ratio * c2) & (contrast > min_contrast)
+    keep &= (right - left) <= max_basin * depths
+    tk = t[np.arange(len(pix)), best][keep]
+    return x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk)
+
+
+@torch.no_grad()
+def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6000, far_scale: float = 3.0,
+                            opacity: float = 0.3, seed: int = 0, dtype=torch.float32,
+                            **sweep) -> tuple[Gaussians | None, dict]:
+    """Up to ``count`` Gaussians where the plane sweep of every planar-mirror view finds a clear depth
+    (module docstring). Candidates lie between the mirror and where the reflected ray leaves the cube about
+    the centre of the current Gaussians' box, ``far_scale`` times its largest side (an object seen only in a
+    mirror may lie well outside the box of what the cameras see directly). ``trace_fn(origins, dirs, gaussians)`` decides
+    which reflections are open (None: all are). Returns (Gaussians or None, statistics for the log)."""
+    mvs, stats = mirror_views(rays, trace_fn, gaussians)
+    stats.update(kept=0, added=0)
+    usable = [m for m in mvs if m is not None]
+    if len(usable) < 2 or count <= 0:
+        return None, stats
+    lo, hi, step = scene_box(gaussians)
+    centre, half = (lo + hi) / 2, far_scale * float((hi - lo).max()) / 2
+    lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
+    pos, colour, dist, fl = [], [], [], []
+    for i, ref in enumerate(usable):
+        p, c, d = sweep_view(ref, usable[:i] + usable[i + 1:], rays.views, lo, hi, 20 * step, **sweep)
+        pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))
+    pos, colour, dist, fl = (np.concatenate(a) for a in (pos, colour, dist, fl))
+    stats["kept"] = len(pos)
+    if len(pos) == 0:
+        return None, stats
+    pick = np.random.default_rng(seed).permutation(len(pos))[:count]
+    pos, colour, scale = pos[pick], colour[pick], dist[pick] / fl[pick]  # a pixel at its virtual distance
+    stats["added"] = len(pos)
+    return matte_gaussians(torch.from_numpy(pos), torch.from_numpy(scale).clamp_min(1e-6), opacity,
+                           torch.from_numpy(colour).clamp(0.0, 100.0), dtype), stats

@@ -1,0 +1,129 @@
+"""Stereo on planar mirrors: cameras looking down at a floor mirror see, only in it, a textured panel above
+them; the plane sweep over their reflections puts Gaussians on the panel, with its colours, and nowhere on
+the untextured background."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from models.capture import View
+from models.capture.camera import Camera
+from models.gaussians import Gaussians
+from models.tracer._torch_impl import reference_trace
+from stages.reconstruct.data import RaySet
+from stages.reconstruct.mirror_stereo import fit_plane, mirror_stereo_gaussians, mirror_views
+
+PANEL_Z, PANEL_HALF = 2.0, 0.5
+BACKGROUND = np.array([0.3, 0.3, 0.3])
+FL, SIZE = 40.0, 48
+
+
+def _panel_colour(p: np.ndarray) -> np.ndarray:
+    """Radiance where rays reach the plane z = PANEL_Z: smooth colour waves (0.3-0.4 m long, ~5 pixels in the
+    mirror) on the panel |x|, |y| < PANEL_HALF, flat grey around it."""
+    x, y = p[..., 0], p[..., 1]
+    waves = np.stack([np.sin(2 * np.pi * x / 0.35), np.sin(2 * np.pi * y / 0.3 + 1),
+                      np.sin(2 * np.pi * (x + y) / 0.4 + 2)], -1)
+    inside = (np.abs(p[..., :2]) < PANEL_HALF).all(-1)
+    return np.where(inside[..., None], 0.5 + 0.4 * waves, BACKGROUND)
+
+
+def _view(i: int, position, curved: bool = False) -> View:
+    """A camera at ``position`` looking straight down (-z) at the floor mirror z = 0 (F0 0.9, roughness 0);
+    ``curved`` tilts the normals like a convex mirror's."""
+    c2w = np.eye(4)
+    c2w[:3, 3] = position
+    cam = Camera(width=SIZE, height=SIZE, fl_x=FL, fl_y=FL, cx=SIZE / 2, cy=SIZE / 2, c2w=c2w)
+    d = cam.ray_directions()
+    t = -position[2] / d[..., 2]
+    x = cam.origin + t[..., None] * d
+    n = np.zeros_like(d)
+    n[..., 2] = 1.0
+    if curved:
+        n[..., :2] = x[..., :2]
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    r = d - 2 * (d * n).sum(-1, keepdims=True) * n
+    radiance = _panel_colour(x + ((PANEL_Z - x[..., 2]) / r[..., 2])[..., None] * r)
+    f = np.float32
+    buffers = {"depth": t[..., None].astype(f), "normal": n.astype(f), "f0": np.full((SIZE, SIZE, 3), 0.9, f),
+               "roughness": np.zeros((SIZE, SIZE, 1), f), "specular": (0.9 * radiance).astype(f),
+               "diffuse": np.zeros((SIZE, SIZE, 3), f), "mask": np.ones((SIZE, SIZE, 1), f)}
+    return View(name=f"v{i}", camera=cam, split="train", buffers=buffers)
+
+
+def _rays(curved: bool = False) -> RaySet:
+    views = [_view(i, np.array([x, y, 1.0]), curved) for i, (x, y) in
+             enumerate([(x, y) for x in (-0.3, 0.0, 0.3) for y in (-0.3, 0.0, 0.3)])]
+    empty = torch.zeros(0, 3)
+    return RaySet(empty, empty, torch.zeros(0, dtype=torch.bool), {}, torch.zeros(0, dtype=torch.long), views)
+
+
+def _room() -> Gaussians:
+    """Faint Gaussians at the corners of the directly seen space [-1, 1]^2 x [0, 1]: every reflection is open."""
+    c = torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (0.0, 1.0)])
+    n = len(c)
+    return Gaussians(means=c, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                     log_scales=torch.full((n, 3), math.log(0.01)), opacity_logits=torch.full((n,), -3.0),
+                     diffuse=torch.full((n, 3), 0.5), normals=torch.zeros(n, 3), roughness=torch.ones(n),
+                     f0=torch.full((n, 3), 0.04))
+
+
+@pytest.fixture(scope="module")
+def stereo():
+    return mirror_stereo_gaussians(_rays(), reference_trace, _room(), count=100000)
+
+
+def test_stereo_puts_gaussians_on_the_panel_seen_only_in_the_mirror(stereo):
+    fill, stats = stereo
+    assert stats["planar_views"] == 9 and fill is not None, stats
+    p = fill.means.numpy()
+    footprint = 3.0 / FL  # a pixel at the panel's virtual distance (1 to the mirror + 2 up)
+    assert np.median(np.abs(p[:, 2] - PANEL_Z)) < footprint
+    assert np.mean(np.abs(p[:, 2] - PANEL_Z) < 2 * footprint) > 0.9
+    assert np.mean((np.abs(p[:, :2]) < PANEL_HALF + 2 * footprint).all(-1)) > 0.9  # not on the grey around it
+    # the panel is covered: Gaussians within 2 footprints of most of a grid over it
+    g = np.linspace(-0.45, 0.45, 10)
+    grid = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    near = np.linalg.norm(grid[:, None, :] - p[None, :, :2], axis=-1).min(1) < 2 * footprint
+    assert near.mean() > 0.8
+
+
+def test_stereo_gaussians_carry_the_reflected_colour(stereo):
+    fill, _ = stereo
+    p = fill.means.numpy()
+    on = (np.abs(p[:, :2]) < PANEL_HALF - 0.05).all(-1) & (np.abs(p[:, 2] - PANEL_Z) < 0.05)
+    expected = _panel_colour(p[on])
+    assert np.median(np.abs(fill.diffuse.numpy()[on] - expected).max(-1)) < 0.02
+    assert (fill.roughness == 1).all() and torch.allclose(fill.f0, torch.tensor(0.04))
+
+
+def test_curved_mirrors_and_few_views_add_nothing():
+    fill, stats = mirror_stereo_gaussians(_rays(curved=True), reference_trace, _room())
+    assert fill is None and stats["planar_views"] == 0
+    rays = _rays()
+    rays.views = rays.views[:1]
+    fill, stats = mirror_stereo_gaussians(rays, reference_trace, _room())
+    assert fill is None and stats["planar_views"] == 1
+
+
+def test_mirror_view_looks_up_the_reflection_of_a_point():
+    (mv, *_), _ = mirror_views(_rays(), None, _room())
+    assert np.allclose(mv.normal, [0, 0, 1]) and abs(mv.offset) < 1e-6
+    # a point on the reflected ray of pixel (row 10, col 30) is seen in that pixel with its colour
+    p = mv.points[10, 30] + 1.7 * mv.dirs[10, 30]
+    valid, colour = mv.look_up(p[None])
+    assert valid[0] and np.allclose(colour[0], mv.colour[10, 30])
+    assert not mv.look_up(np.array([[0.0, 0.0, -0.5]]))[0][0]  # behind the mirror
+
+
+def test_fit_plane_rejects_what_is_not_one_plane():
+    rng = np.random.default_rng(0)
+    flat = np.c_[rng.uniform(-1, 1, (200, 2)), np.zeros(200)]
+    n, d = fit_plane(flat, towards=np.array([0, 0, -3.0]), tol=1e-3)
+    assert np.allclose(n, [0, 0, -1]) and abs(d) < 1e-9  # normal facing the camera
+    bumpy = flat + np.c_[np.zeros((200, 2)), 0.1 * flat[:, 0] ** 2]
+    assert fit_plane(bumpy, towards=np.array([0, 0, 3.0]), tol=1e-3) is None
