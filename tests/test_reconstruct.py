@@ -19,21 +19,23 @@ SMALL = dict(iterations=160, warmup=80, rays_per_step=768, prune_from=100, prune
              checkpoint_every=40, threads=2)
 
 
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    cfg = load_config("demo", presets=["ci"])
-    capture = render_capture(cfg["synth"], tmp_path_factory.mktemp("demo") / "capture", progress=False)
+def _scene(name: str, folder):
+    """The scene at CI size: its capture and dense initialisation."""
+    cfg = load_config(name, presets=["ci"])
+    capture = render_capture(cfg["synth"], folder / "capture", progress=False)
     init, _ = dense_init(capture, InitConfig.from_dict(cfg["init"]))
     return capture, init
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    return _scene("demo", tmp_path_factory.mktemp("demo"))
 
 
 @pytest.fixture(scope="module")
 def book(tmp_path_factory):
-    """mirror_book at CI size: the training cameras see the back of the room only in the mirror."""
-    cfg = load_config("mirror_book", presets=["ci"])
-    capture = render_capture(cfg["synth"], tmp_path_factory.mktemp("book") / "capture", progress=False)
-    init, _ = dense_init(capture, InitConfig.from_dict(cfg["init"]))
-    return capture, init
+    """mirror_book: the training cameras see the back of the room only in the mirror."""
+    return _scene("mirror_book", tmp_path_factory.mktemp("book"))
 
 
 def tracer():
@@ -109,7 +111,8 @@ def test_far_field_only_when_reflections_escape(demo, book):
     # mirror_book: the mirror reflects the part of the room behind the training cameras, never captured
     opened = Trainer(*book, ReconstructConfig.from_dict(SMALL), tracer())
     assert opened.far_field
-    assert any("mirror-like reflection rays leave the initial geometry" in d for d in opened.decisions), opened.decisions
+    assert any("mirror-like reflection rays leave the initial geometry" in d for d in opened.decisions), \
+        opened.decisions
 
 
 def test_pruning_keeps_what_the_views_see_only_in_mirrors(book):

@@ -9,10 +9,11 @@ other view's mirror plane and projected into that view; where that view sees the
 pixels, the colours of the two reflections (``specular / F0``) are compared. At the object's true depth
 they agree in every view that sees it; elsewhere the other views look at different texture. Per pixel, the
 cost at each depth is the mean of the other views' relative colour differences (or of their better
-``best_fraction``, robust to occlusion but less decisive: on mirror_book at ``ratio`` 0.8, 0.5 kept 132 points on the book
-where all views kept 410), averaged over a small window of the reference image (textures match as patches, not pixels),
-and the depth kept is the best one when it is clearly better than every depth away from it (``ratio``) and
-good in itself (``max_cost``); untextured surfaces have no clear best and add nothing. Depths that a
+``best_fraction``, robust to occlusion but less decisive: on mirror_book at ``ratio`` 0.8, 0.5 kept 132
+points on the book where all views kept 410), averaged over a small window of the reference image (textures
+match as patches, not pixels). The depth kept is the best one when it is clearly better than every depth
+outside its basin (``ratio``), good in itself (``max_cost``), localised (its basin under ``max_basin`` of
+the sweep) and textured (``min_contrast``): flat colour has no clear best and adds nothing. Depths that a
 training camera sees to be empty (``seen_empty``) are not candidates.
 
 Each kept pixel gives one matte Gaussian there: the reflection's colour as diffuse colour, the size of a pixel
@@ -31,25 +32,27 @@ from scipy.ndimage import uniform_filter
 
 from models.gaussians import Gaussians
 
-from .reflection_fill import LUMINANCE, SHINY_F0, SHINY_ROUGHNESS, box_exit, matte_gaussians, scene_box, seen_empty
+from .reflection_fill import LUMINANCE, box_exit, matte_gaussians, scene_box, seen_empty, shiny
 
 
 class MirrorView:
-    """One training view's planar mirror: its open mirror pixels, their mirror points, reflected directions
-    and reflected colours, and the plane (unit normal towards the camera, offset)."""
+    """One training view's planar mirror: its open mirror pixels, their mirror points, normals, reflected
+    directions and reflected colours, and the plane (unit normal towards the camera, offset; set by
+    ``mirror_views`` once fitted)."""
 
-    def __init__(self, view, open_mask: np.ndarray, normal: np.ndarray, offset: float):
+    def __init__(self, view, open_mask: np.ndarray):
         b, cam = view.buffers, view.camera
         self.camera = cam
         self.open = open_mask  # [H, W] bool
         d = cam.ray_directions()
         n = b["normal"] / np.maximum(np.linalg.norm(b["normal"], axis=-1, keepdims=True), 1e-12)
+        self.normals = n  # [H, W, 3] unit, per pixel
         self.points = cam.origin + d * b["depth"]  # [H, W, 3]
         self.dirs = d - 2 * (d * n).sum(-1, keepdims=True) * n
         self.dirs /= np.maximum(np.linalg.norm(self.dirs, axis=-1, keepdims=True), 1e-12)
         self.colour = b["specular"] / np.maximum(b["f0"], 0.05)
         self.distance = b["depth"][..., 0]  # camera to mirror
-        self.normal, self.offset = normal, offset
+        self.normal, self.offset = np.zeros(3), 0.0
 
     def look_up(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(valid [N] bool, colour [N, 3]): where this view sees ``points`` [N, 3] in its open mirror pixels
@@ -100,29 +103,25 @@ def mirror_views(rays, trace_fn, gaussians: Gaussians, min_pixels: int = 64, ope
             out.append(None)
             continue
         hit = b["mask"][..., 0] > 0.5 if "mask" in b else b["depth"][..., 0] > 0
-        shiny = hit & (b["f0"].mean(-1) > SHINY_F0) & (b["roughness"][..., 0] < SHINY_ROUGHNESS)
-        if shiny.sum() < min_pixels:
+        mirror = hit & shiny(b["f0"], b["roughness"])
+        if mirror.sum() < min_pixels:
             out.append(None)
             continue
         cam = view.camera
-        pts = (cam.origin + cam.ray_directions() * b["depth"])[shiny]
-        plane = fit_plane(pts, cam.origin, tol=float(hi[0] - lo[0] + hi[1] - lo[1] + hi[2] - lo[2]) * 2e-3)
-        if plane is None:
+        mv = MirrorView(view, mirror)
+        plane = fit_plane(mv.points[mirror], cam.origin, tol=float((hi - lo).sum()) * 2e-3)
+        # the normals must agree with the plane: they say curved (or several mirrors) where the points look flat
+        if plane is None or np.quantile(np.abs(mv.normals[mirror] @ plane[0]), 0.1) < \
+                math.cos(math.radians(max_normal_deg)):
             out.append(None)
             continue
-        mv = MirrorView(view, shiny, *plane)
-        n = b["normal"][shiny] / np.maximum(np.linalg.norm(b["normal"][shiny], axis=-1, keepdims=True), 1e-12)
-        if np.quantile(np.abs(n @ mv.normal), 0.1) < math.cos(math.radians(max_normal_deg)):
-            # the normals say curved (or several mirrors) where the points look flat
-            out.append(None)
-            continue
-        x = torch.from_numpy(mv.points[shiny]).float()
-        r = torch.from_numpy(mv.dirs[shiny]).float()
+        mv.normal, mv.offset = plane
         if trace_fn is not None:
+            x = torch.from_numpy(mv.points[mirror]).float()
+            r = torch.from_numpy(mv.dirs[mirror]).float()
             t = trace_fn(x + step * r, r, gaussians).transmittance.reshape(-1).numpy()
-            opened = np.zeros_like(shiny)
-            opened[shiny] = t > open_transmittance
-            mv.open = opened
+            mv.open = np.zeros_like(mirror)
+            mv.open[mirror] = t > open_transmittance
         planar += 1
         out.append(mv)
     return out, {"planar_views": planar}
@@ -182,13 +181,13 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     c2 = np.where((k < left[:, None]) | (k > right[:, None]), agg, np.inf).min(1)
     # texture: the relative spread of the reflected luminance over the window (flat colour matches anywhere)
     lum = np.where(ref.open, ref.colour @ np.array(LUMINANCE), 0.0)
-    size2, n = (2 * window + 1,) * 2, uniform_filter(ref.open.astype(np.float64), size=(2 * window + 1,) * 2)
-    mean = uniform_filter(lum, size=size2) / np.maximum(n, 1e-12)
-    var = uniform_filter(lum ** 2, size=size2) / np.maximum(n, 1e-12) - mean ** 2
+    n = np.maximum(uniform_filter(ref.open.astype(np.float64), size=size[:2]), 1e-12)
+    mean = uniform_filter(lum, size=size[:2]) / n
+    var = uniform_filter(lum ** 2, size=size[:2]) / n - mean ** 2
     contrast = (np.sqrt(np.maximum(var, 0.0)) / np.maximum(mean, 1e-6)).reshape(-1)[pix]
     keep = np.isfinite(c2) & (c1 < max_cost) & (c1 < ratio * c2) & (contrast > min_contrast)
     keep &= (right - left) <= max_basin * depths
-    tk = t[np.arange(len(pix)), best][keep]
+    tk = t[rows, best][keep]
     return x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk)
 
 
@@ -199,8 +198,9 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     """Up to ``count`` Gaussians where the plane sweep of every planar-mirror view finds a clear depth
     (module docstring). Candidates lie between the mirror and where the reflected ray leaves the cube about
     the centre of the current Gaussians' box, ``far_scale`` times its largest side (an object seen only in a
-    mirror may lie well outside the box of what the cameras see directly). ``trace_fn(origins, dirs, gaussians)`` decides
-    which reflections are open (None: all are). Returns (Gaussians or None, statistics for the log)."""
+    mirror may lie well outside the box of what the cameras see directly). ``trace_fn(origins, dirs,
+    gaussians)`` decides which reflections are open (None: all are). Returns (Gaussians or None, statistics
+    for the log)."""
     mvs, stats = mirror_views(rays, trace_fn, gaussians)
     stats.update(kept=0, added=0)
     usable = [m for m in mvs if m is not None]

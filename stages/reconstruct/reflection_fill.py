@@ -58,6 +58,12 @@ def matte_gaussians(pos: torch.Tensor, scale: torch.Tensor, opacity: float, colo
     )
 
 
+def shiny(f0, roughness):
+    """Mirror-like pixels (bool, works on numpy and torch): mean F0 > SHINY_F0 and roughness < SHINY_ROUGHNESS;
+    ``f0`` [..., 3], ``roughness`` [..., 1]."""
+    return (f0.mean(-1) > SHINY_F0) & (roughness[..., 0] < SHINY_ROUGHNESS)
+
+
 def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """(points on the mirrors [M, 3], unit reflected directions [M, 3], ray indices [M]) for up to
     ``max_rays`` random mirror-like training pixels (from the depth / normal / F0 / roughness buffers), or
@@ -65,8 +71,7 @@ def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch
     t = rays.targets
     if not all(k in t for k in ("depth", "normal", "f0", "roughness")):
         return None
-    shiny = rays.mask & (t["f0"].mean(-1) > SHINY_F0) & (t["roughness"].reshape(-1) < SHINY_ROUGHNESS)
-    index = torch.nonzero(shiny).reshape(-1)
+    index = torch.nonzero(rays.mask & shiny(t["f0"], t["roughness"])).reshape(-1)
     if len(index) == 0:
         return None
     index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(seed))[:max_rays]]

@@ -98,7 +98,8 @@ class Trainer:
         if peak < 1e-4:
             self.decisions.append(f"reflections: specular buffers are ~0 (max {peak:.2e}), primary rays only")
             return False
-        self.decisions.append(f"reflections: on after step {self.config.warmup}, max path length {self.config.max_path_length}")
+        self.decisions.append(f"reflections: on after step {self.config.warmup}, "
+                              f"max path length {self.config.max_path_length}")
         return True
 
     def _needs_far_field(self, init: Gaussians) -> bool:
@@ -223,6 +224,12 @@ class Trainer:
             metrics["psnr_specular"] = psnr(out.specular.detach(), batch.targets["specular"])
         return total, metrics
 
+    def _add_fill(self, fill: Gaussians | None, stats: dict, message: str) -> None:
+        """Append a fill's Gaussians (if any) and log ``message % stats``."""
+        if fill is not None:
+            self._replace(extra=fill)
+        log.info("step %d: added %s", self.step, message % stats)
+
     def train_step(self) -> dict:
         cfg = self.config
         reflections = self.reflections and self.step >= cfg.warmup
@@ -234,27 +241,19 @@ class Trainer:
             self.far_field_added = True
             log.info("step %d: added %d far-field Gaussians", self.step, len(ff))
             if cfg.reflection_fill_count > 0:
-                fill, stats = reflection_fill_gaussians(self.rays, self.backend.trace, scene,
-                                                        cfg.reflection_fill_count, seed=cfg.seed)
-                if fill is not None:
-                    self._replace(extra=fill)
-                log.info("step %d: added %d Gaussians (%d candidates unseen by the cameras) along %d open mirror "
-                         "reflections (of %d mirror rays)", self.step, stats["added"], stats["unseen"],
-                         stats["open_rays"], stats["mirror_rays"])
+                self._add_fill(*reflection_fill_gaussians(self.rays, self.backend.trace, scene,
+                                                          cfg.reflection_fill_count, seed=cfg.seed),
+                               "%(added)d Gaussians (%(unseen)d candidates unseen by the cameras) along "
+                               "%(open_rays)d open mirror reflections (of %(mirror_rays)d mirror rays)")
             if cfg.mirror_stereo_count > 0:
-                fill, stats = mirror_stereo_gaussians(self.rays, self.backend.trace, scene, cfg.mirror_stereo_count,
-                                                      seed=cfg.seed)
-                if fill is not None:
-                    self._replace(extra=fill)
-                log.info("step %d: added %d Gaussians where the reflections of %d planar-mirror views agree in "
-                         "depth (%d pixels matched)", self.step, stats["added"], stats["planar_views"], stats["kept"])
+                self._add_fill(*mirror_stereo_gaussians(self.rays, self.backend.trace, scene,
+                                                        cfg.mirror_stereo_count, seed=cfg.seed),
+                               "%(added)d Gaussians where the reflections of %(planar_views)d planar-mirror views "
+                               "agree in depth (%(kept)d pixels matched)")
             if cfg.highlight_fill:
-                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed)
-                if lights is not None:
-                    self._replace(extra=lights)
-                log.info("step %d: added %d emitting Gaussians where %d open highlight reflections (of %d mirror "
-                         "rays) end together (box scale %.2f)", self.step, stats["added"], stats["highlight_rays"],
-                         stats["mirror_rays"], stats["box_scale"])
+                self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
+                               "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
+                               "(of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f)")
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)
