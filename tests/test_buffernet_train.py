@@ -83,12 +83,16 @@ def test_vae_phase_cosine_schedule_resumes_exactly(rooms, tmp_path):
 
 def test_changed_options_restart_instead_of_resuming(rooms, tmp_path):
     """Checkpoints of a run with other options (here the learning rate) are not resumed: the run starts from
-    step 0 with a fresh log, and equals a run that never had them. A longer schedule alone still resumes."""
+    step 0 with a fresh log, and equals a run that never had them; the other run's checkpoints, log and options
+    are moved under replaced/, not deleted. A longer schedule alone still resumes."""
     out = tmp_path / "run"
     train(_cfg(rooms, out, lr=5e-3), progress=False)
     changed = BufferNetPipeline.from_pretrained(train(_cfg(rooms, out), progress=False))
     steps = [json.loads(l)["step"] for l in (out / "train_log.jsonl").read_text().splitlines()]
     assert steps == [1, 2, 3, 4]
+    (kept,) = (out / "replaced").iterdir()
+    assert json.loads((kept / "config.json").read_text())["lr"] == 5e-3
+    assert any((kept / "checkpoints").glob("step_*")) and (kept / "train_log.jsonl").is_file()
     clean = BufferNetPipeline.from_pretrained(train(_cfg(rooms, tmp_path / "clean"), progress=False))
     a, b = _weights(changed), _weights(clean)
     assert all(torch.equal(a[k], b[k]) for k in a)

@@ -107,9 +107,16 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True) -> Path:
     start = 0
     ckpt = latest_checkpoint(out) if resume else None
     if ckpt is not None and _changed_since_checkpoints(out, cfg):
-        acc.print(f"{out}: the training options changed since its checkpoints were written; starting afresh")
+        # nothing lost: the other run's checkpoints, log and options move aside
+        kept = out / "replaced" / time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+        kept.mkdir(parents=True, exist_ok=True)
+        for name in ("checkpoints", "train_log.jsonl", "config.json"):
+            if (out / name).exists():
+                shutil.move(str(out / name), str(kept / name))
+        acc.print(f"{out}: the training options changed since its checkpoints were written; starting afresh "
+                  f"(the previous run's checkpoints, log and options are in {kept})")
         ckpt = None
-    if ckpt is None:  # a fresh run: forget any previous run's checkpoints and log
+    if ckpt is None:  # a fresh run (or --fresh): forget any previous run's checkpoints and log
         shutil.rmtree(out / "checkpoints", ignore_errors=True)
         (out / "train_log.jsonl").unlink(missing_ok=True)
     if ckpt is not None:
