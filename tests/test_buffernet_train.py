@@ -11,7 +11,8 @@ import torch
 from models.buffernet import BufferNetPipeline
 from stages.buffernet_train.config import TrainConfig
 from stages.buffernet_train.data import draw_batch, make_readers
-from stages.buffernet_train.evaluate import abs_rel_aligned, angular_error, evaluate_network, psnr
+from stages.buffernet_train.evaluate import (_Tally, abs_rel_aligned, angular_error, evaluate_network, format_rows,
+                                             psnr)
 from stages.buffernet_train.train import train
 from stages.synth.procedural import render_procedural
 from models.buffernet.datasets import BufferDataset
@@ -150,6 +151,31 @@ def test_evaluate_reports_baselines(rooms):
     assert set(rows) == {"diffuse", "specular", "normal", "depth", "roughness", "f0"}
     for r in rows.values():
         assert np.isfinite(r["network"]) and np.isfinite(r["baseline"]) and r["images"] == 1
+        assert r["wins"] in (0, 1) and r["beats_baseline"] == bool(r["wins"])  # one image: pooled = per image
+    own = rows["diffuse"]["head"]["network"]  # the diffuse prompt's output, next to the image minus the specular
+    assert np.isfinite(own) and own != rows["diffuse"]["network"]
+    table = format_rows(rows)
+    assert "diffuse (head)" in table and ("  1/1  " in table or "  0/1  " in table)
+
+
+def test_psnr_pools_the_squared_error_over_images():
+    """An image a predictor matches exactly (PSNR capped at 100 dB) must not outweigh the rest: the pooled PSNR of
+    [exact, off by 0.1] is that of MSE 0.005 (23.0 dB), not the 60 dB mean of per-image PSNRs."""
+    truth = np.full((8, 8, 3), 0.5)
+    mask = np.ones((8, 8), bool)
+    exact, off = _Tally("specular"), _Tally("specular")
+    for t in (exact, off):
+        t.add(truth, truth, mask, 1.0)
+    exact.add(truth + 0.1, truth, mask, 1.0)
+    off.add(truth + 0.05, truth, mask, 1.0)
+    assert exact.value() == pytest.approx(10 * np.log10(1 / 0.005), abs=1e-6)
+    assert np.mean(exact.scores) == pytest.approx(60, abs=1e-6)
+    assert off.value() > exact.value() and off.wins_over(exact) == 1 and exact.wins_over(off) == 0
+    angles = _Tally("normal")  # angles and AbsRel stay means over images
+    n = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (8, 8, 3))
+    angles.add(n, n, mask, 1.0)
+    angles.add(np.broadcast_to(np.array([0.0, 1.0, 0.0]), (8, 8, 3)), n, mask, 1.0)
+    assert angles.value() == pytest.approx(45, abs=1e-3)
 
 
 def test_errors(tmp_path):

@@ -76,6 +76,9 @@ def test_fill_buffers_and_cli(tmp_path):
         assert (v.buffers["roughness"] >= 0).all() and (v.buffers["roughness"] <= 1).all()
         assert (v.buffers["f0"] >= 0).all() and (v.buffers["f0"] <= 1).all()
         assert (v.buffers["depth"] >= 0).all()
+        # radiance: complement (the default): the diffuse is the image minus the specular
+        np.testing.assert_allclose(v.buffers["diffuse"] + v.buffers["specular"], np.clip(v.buffers["rgb"], 0, None),
+                                   atol=1e-5)
     assert (out / "points3D.ply").is_file() and (out / "stage.json").is_file()
     assert got.meta.extra["buffers"]["points"].startswith("sfm")
 
@@ -91,6 +94,8 @@ def test_fill_buffers_and_cli(tmp_path):
 def test_errors(tmp_path):
     with pytest.raises(ValueError, match="unknown buffer.*albedo"):
         BuffersConfig.from_dict({"predict": ["albedo"]})
+    with pytest.raises(ValueError, match="buffers.radiance must be one of complement, heads, got 'sum'"):
+        BuffersConfig.from_dict({"predict": ["diffuse"], "radiance": "sum"})
     with pytest.raises(ValueError, match="unknown buffers option"):
         BuffersConfig.from_dict({"predict": [], "bogus": 1})
     cap = floor_capture()

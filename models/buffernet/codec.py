@@ -21,6 +21,12 @@ tonemapped by the fixed invertible curve ``tonemap`` into [-1, 1]. ``input_expos
 are what both training and inference call, so exposure handling is identical in both; scaling the input
 by any k > 0 gives the same encoded image. Decoded values are clipped to their valid range.
 
+Diffuse from the image: the image IS diffuse + specular (paper Eq. 2: a path's first vertex is evaluated with
+f_d or f_s), so ``split_radiance`` forms the diffuse as the image minus the predicted specular (the default of
+``BufferNetPipeline.predict``, ``radiance="complement"``). The diffuse prompt's own output has to carry every
+texture of the image through the VAE, which the small CPU-trained VAE cannot do well; the specular is dark
+and smooth, which it can.
+
 Invalid pixels: ``encode_target(..., mask=)`` writes 0 (mid grey) where ``mask`` is False; the caller
 masks those pixels out of the loss (the mask is not part of the encoding).
 """
@@ -45,6 +51,7 @@ PROMPTS: dict[str, str] = {
 }
 
 RADIANCE = ("diffuse", "specular")
+RADIANCE_MODES = ("complement", "heads")  # how BufferNetPipeline.predict forms the diffuse (split_radiance)
 SCALAR = ("depth", "roughness", "metalness")  # [H, W] buffers, replicated over 3 channels
 
 EXPOSURE_PERCENTILE = 95.0  # luminance percentile of the input that the exposure maps to EXPOSURE_TARGET
@@ -153,6 +160,17 @@ def encode_target(buffer: str, array: np.ndarray, exposure: float, mask: np.ndar
             raise ValueError(f"{buffer}: mask shape {m.shape} does not match the buffer's {tuple(t.shape[1:])}")
         t = t * torch.from_numpy(m)[None].to(t.dtype)
     return t
+
+
+def split_radiance(rgb_linear: np.ndarray, specular: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(diffuse, specular) ``[H, W, 3]`` that sum to ``max(rgb, 0)`` exactly: the specular clipped per channel to
+    ``[0, max(rgb, 0)]`` (no pixel reflects more than it shows), the diffuse the rest of the image."""
+    rgb = np.clip(np.nan_to_num(check_rgb(rgb_linear)), 0.0, None)
+    spec = np.asarray(specular, dtype=np.float32)
+    if spec.shape != rgb.shape:
+        raise ValueError(f"specular shape {spec.shape} does not match the image's {rgb.shape}")
+    spec = np.clip(np.nan_to_num(spec), 0.0, rgb)
+    return rgb - spec, spec
 
 
 def decode_output(buffer: str, tensor: torch.Tensor, exposure: float) -> np.ndarray:

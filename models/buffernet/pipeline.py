@@ -26,7 +26,8 @@ import torch.nn.functional as F
 from diffusers import AutoencoderKL, DDPMScheduler, DiffusionPipeline, UNet2DConditionModel
 from transformers import CLIPTextModel, CLIPTokenizer
 
-from .codec import BUFFERS, PROMPTS, check_buffer, check_rgb, decode_output, encode_rgb, input_exposure
+from .codec import (BUFFERS, PROMPTS, RADIANCE_MODES, check_buffer, check_rgb, decode_output, encode_rgb,
+                    input_exposure, split_radiance)
 
 IN_CHANNELS = 8  # image latent (4) + zero latent (4)
 
@@ -127,12 +128,24 @@ class BufferNetPipeline(DiffusionPipeline):
 
     @torch.no_grad()
     def predict(self, rgb_linear: np.ndarray, buffers: Sequence[str] = BUFFERS, *, batched: bool = True,
-                resolution: int | None = None) -> dict[str, np.ndarray]:
+                resolution: int | None = None, radiance: str = "complement") -> dict[str, np.ndarray]:
         """Linear RGB ``[H, W, 3]`` -> ``{buffer: array}`` in capture conventions (``codec``), at ``H x W``:
-        ``predict_images`` then ``codec.decode_output`` per buffer."""
+        ``predict_images`` then ``codec.decode_output`` per buffer.
+
+        ``radiance``: how the diffuse is formed. ``"complement"`` (default): the image minus the specular
+        prediction (``codec.split_radiance``; diffuse + specular = the image exactly, the specular clipped to
+        [0, image]); the specular prompt runs, in the same batch, even when only the diffuse is asked for.
+        ``"heads"``: each prompt's own output (the diffuse prompt's, and the specular unclipped)."""
+        if radiance not in RADIANCE_MODES:
+            raise ValueError(f"radiance must be one of {', '.join(RADIANCE_MODES)}, got {radiance!r}")
         buffers = tuple(buffers)
-        images, exposure = self.predict_images(rgb_linear, buffers, batched=batched, resolution=resolution)
-        return {b: decode_output(b, images[i], exposure) for i, b in enumerate(buffers)}
+        complement = radiance == "complement" and "diffuse" in buffers
+        run = buffers + ("specular",) if complement and "specular" not in buffers else buffers
+        images, exposure = self.predict_images(rgb_linear, run, batched=batched, resolution=resolution)
+        out = {b: decode_output(b, images[i], exposure) for i, b in enumerate(run)}
+        if complement:
+            out["diffuse"], out["specular"] = split_radiance(rgb_linear, out["specular"])
+        return {b: out[b] for b in buffers}
 
     @torch.no_grad()
     def predict_images(self, rgb_linear: np.ndarray, buffers: Sequence[str] = BUFFERS, *, batched: bool = True,
@@ -162,9 +175,9 @@ class BufferNetPipeline(DiffusionPipeline):
         return resize(self.decode_latents(x0).float().cpu(), (height, width)), exposure
 
     def predict_per_prompt(self, rgb_linear: np.ndarray, buffers: Sequence[str] = BUFFERS,
-                           resolution: int | None = None) -> dict[str, np.ndarray]:
+                           resolution: int | None = None, radiance: str = "complement") -> dict[str, np.ndarray]:
         """``predict`` with one full run per buffer (for the batched-vs-per-prompt comparison and benchmark)."""
-        return self.predict(rgb_linear, buffers, batched=False, resolution=resolution)
+        return self.predict(rgb_linear, buffers, batched=False, resolution=resolution, radiance=radiance)
 
     # --- training -----------------------------------------------------------------------------------------
 

@@ -2,7 +2,8 @@
 
 Per view, every requested buffer is predicted in ONE batched network pass (``BufferNetPipeline.predict``)
 and converted from the network's conventions to the capture's:
-- diffuse / specular: linear radiance in the input's units (as predicted);
+- diffuse / specular: linear radiance in the input's units; by default (``radiance: complement``) the diffuse
+  is the image minus the predicted specular, so the two sum to the image (``codec.split_radiance``);
 - normal: camera space -> world (the view's camera-to-world rotation);
 - depth: relative z-depth, aligned per view to 3D points (``align_to_points``: RANSAC scale + shift), then
   z-depth -> distance along the ray. The points are the capture's SfM points, or, for a synthetic scene run
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from models.buffernet.codec import BUFFERS
+from models.buffernet.codec import BUFFERS, RADIANCE_MODES
 from models.capture import Capture
 from models.capture.depth_align import align_to_points
 from models.capture.points import read_sfm_points
@@ -38,6 +39,7 @@ class BuffersConfig:
     points: str = "sfm"        # depth alignment points: "sfm" (points3D.ply / sparse/) | "truth" (synthetic:
                                # `truth_points` random pixels of each train view's rendered depth)
     truth_points: int = 300    # per train view, with points: truth
+    radiance: str = "complement"  # diffuse = image - predicted specular; "heads": the diffuse prompt's output
 
     @classmethod
     def from_dict(cls, d: dict) -> "BuffersConfig":
@@ -46,6 +48,8 @@ class BuffersConfig:
         bad = [b for b in cfg.predict if b not in BUFFERS]
         if bad:
             raise ValueError(f"buffers.predict: unknown buffer(s) {bad}; valid: {', '.join(BUFFERS)}")
+        if cfg.radiance not in RADIANCE_MODES:
+            raise ValueError(f"buffers.radiance must be one of {', '.join(RADIANCE_MODES)}, got {cfg.radiance!r}")
         if cfg.points not in ("sfm", "truth"):
             raise ValueError(f"buffers.points must be 'sfm' or 'truth', got {cfg.points!r}")
         return cfg
@@ -107,7 +111,7 @@ def fill_buffers(capture: Capture, capture_dir: Path, pipe, cfg: BuffersConfig, 
         if "rgb" not in view.buffers:
             raise ValueError(f"view {view.name!r} has no R,G,B to predict buffers from")
         t = time.perf_counter()
-        pred = pipe.predict(view.buffers["rgb"], wanted, resolution=cfg.resolution)
+        pred = pipe.predict(view.buffers["rgb"], wanted, resolution=cfg.resolution, radiance=cfg.radiance)
         seconds.append(time.perf_counter() - t)
         new, notes = to_capture_buffers(view, pred, points, seed=i)
         buffers = {**view.buffers, **new}
