@@ -26,16 +26,19 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from models.buffernet.codec import BUFFERS, decode_output, encode_target, input_exposure
+from models.buffernet.codec import BUFFERS, RADIANCE, decode_output, encode_target, input_exposure
 from models.buffernet.pipeline import resize, size_for
 
 LOWER_IS_BETTER = {"normal": "mean angular error (deg)", "depth": "AbsRel"}
 
 
+def _psnr_of_mse(mse: float) -> float:
+    return float(10 * np.log10(1.0 / max(mse, 1e-10)))
+
+
 def psnr(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
     pred, truth = np.clip(pred, 0, 1), np.clip(truth, 0, 1)
-    mse = float(((pred - truth) ** 2)[mask].mean())
-    return float(10 * np.log10(1.0 / max(mse, 1e-10)))
+    return _psnr_of_mse(float(((pred - truth) ** 2)[mask].mean()))
 
 
 def angular_error(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
@@ -56,7 +59,12 @@ PSNR_BUFFERS = ("diffuse", "specular", "roughness", "f0")
 
 
 def _scaled(buffer: str, x: np.ndarray, exposure: float) -> np.ndarray:
-    return x * exposure if buffer in ("diffuse", "specular") else x
+    return x * exposure if buffer in RADIANCE else x
+
+
+def _better(buffer: str, a: float, b: float) -> bool:
+    """Whether score ``a`` is better than ``b`` for ``buffer``'s metric."""
+    return a < b if buffer in LOWER_IS_BETTER else a > b
 
 
 def score(buffer: str, pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, exposure: float) -> float:
@@ -74,21 +82,22 @@ class _Tally:
         self.buffer, self.scores, self.sse, self.n = buffer, [], 0.0, 0
 
     def add(self, pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, exposure: float) -> None:
-        self.scores.append(score(self.buffer, pred, truth, mask, exposure))
-        if self.buffer in PSNR_BUFFERS:
-            p = np.clip(_scaled(self.buffer, pred, exposure), 0, 1)
-            t = np.clip(_scaled(self.buffer, truth, exposure), 0, 1)
-            err = ((p - t) ** 2)[mask]
-            self.sse, self.n = self.sse + float(err.sum()), self.n + err.size
+        if self.buffer not in PSNR_BUFFERS:
+            self.scores.append(score(self.buffer, pred, truth, mask, exposure))
+            return
+        p = np.clip(_scaled(self.buffer, pred, exposure), 0, 1)
+        t = np.clip(_scaled(self.buffer, truth, exposure), 0, 1)
+        err = ((p - t) ** 2)[mask]
+        self.scores.append(_psnr_of_mse(float(err.mean())))  # = score(...), from the same errors
+        self.sse, self.n = self.sse + float(err.sum()), self.n + err.size
 
     def value(self) -> float:
         if self.buffer in PSNR_BUFFERS:
-            return float(10 * np.log10(1.0 / max(self.sse / max(self.n, 1), 1e-10)))
+            return _psnr_of_mse(self.sse / max(self.n, 1))
         return float(np.mean(self.scores))
 
     def wins_over(self, other: "_Tally") -> int:
-        lower = self.buffer in LOWER_IS_BETTER
-        return int(sum((a < b) if lower else (a > b) for a, b in zip(self.scores, other.scores)))
+        return int(sum(_better(self.buffer, a, b) for a, b in zip(self.scores, other.scores)))
 
 
 def baseline(buffer: str, rgb: np.ndarray) -> np.ndarray:
@@ -123,11 +132,11 @@ def evaluate_network(pipe, samples, resolution: int | None = None, progress: boo
             continue
         metric = LOWER_IS_BETTER.get(b, "PSNR (dB)")
         o, bl = ours[b].value(), base[b].value()
-        better = o < bl if b in LOWER_IS_BETTER else o > bl
         rows[b] = {"metric": metric, "network": round(o, 4), "baseline": round(bl, 4), "images": len(ours[b].scores),
-                   "wins": ours[b].wins_over(base[b]), "beats_baseline": bool(better)}
+                   "wins": ours[b].wins_over(base[b]), "beats_baseline": _better(b, o, bl)}
         if b == "diffuse":
-            rows[b]["head"] = {"network": round(head.value(), 4), "wins": head.wins_over(base[b])}
+            rows[b]["head"] = {"network": round(head.value(), 4), "wins": head.wins_over(base[b]),
+                               "beats_baseline": _better(b, head.value(), bl)}
     return rows
 
 
@@ -165,7 +174,6 @@ def format_rows(rows: dict) -> str:
     for b, r in rows.items():
         lines.append(line(b, r, r["network"], r["wins"], r["beats_baseline"], r.get("vae_roundtrip")))
         if "head" in r:
-            own = r["head"]["network"]
-            lines.append(line(f"{b} (head)", r, own, r["head"]["wins"],
-                              own < r["baseline"] if b in LOWER_IS_BETTER else own > r["baseline"], None))
+            own = r["head"]
+            lines.append(line(f"{b} (head)", r, own["network"], own["wins"], own["beats_baseline"], None))
     return "\n".join(lines)
