@@ -2,30 +2,68 @@
 
 Snakemake (``workflow/rules/common.smk``) and every stage CLI load configs
 through this module, so a stage run by hand sees what the workflow would give it.
+
+Schemas (``workflow/schemas/``): the sections read into a settings dataclass (init, reconstruct, render, poses,
+buffers, buffernet.train) have schemas GENERATED from those dataclasses (``models/settings.py``): regenerate them
+with ``python -m stages.config --write-schemas`` (a test fails while they are stale). The top level, synth, edits
+and buffernet sections have hand-written schemas (their parsers are hand-written too).
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
-import hashlib
-import json
+import sys
 from pathlib import Path
 from typing import Any, Iterable
 
 import jsonschema
 import yaml
 
+from models.settings import config_hash, describe, read_yaml_mapping, reject_unknown  # noqa: F401  (config_hash, reject_unknown:
+# re-exported for the stages)
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 SCHEMAS = ROOT / "workflow" / "schemas"
-# section -> schema file validating it (when both exist)
+# section (dotted path) -> schema file validating it (when the section is present)
 SECTION_SCHEMAS = {
-    "synth": "synth.schema.yaml", "init": "init.schema.yaml",
-    "reconstruct": "reconstruct.schema.yaml", "render": "render.schema.yaml",
-    "poses": "poses.schema.yaml",
-    "edits": "edit.schema.yaml",
+    "synth": "synth.schema.yaml", "edits": "edit.schema.yaml", "buffernet": "buffernet.schema.yaml",  # by hand
+    "init": "init.schema.yaml", "reconstruct": "reconstruct.schema.yaml", "render": "render.schema.yaml",
+    "poses": "poses.schema.yaml", "buffers": "buffers.schema.yaml",
+    "buffernet.train": "buffernet_train.schema.yaml",  # generated (generated_schemas)
 }
+
+
+def generated_schemas() -> dict[str, dict]:
+    """Schema file name -> the schema generated from the settings dataclass of its section."""
+    from models.buffernet.fill import BuffersConfig
+    from models.buffernet.training.config import TrainConfig
+    from models.initialisation import InitConfig
+    from models.poses.config import PosesConfig
+    from models.reconstruction import ReconstructConfig
+    from models.rendering import RenderConfig
+    from models.settings import schema
+
+    return {"init.schema.yaml": schema(InitConfig), "reconstruct.schema.yaml": schema(ReconstructConfig),
+            "render.schema.yaml": schema(RenderConfig), "poses.schema.yaml": schema(PosesConfig),
+            "buffers.schema.yaml": schema(BuffersConfig),
+            # data / out are given on the buffernet_train command line by the workflow
+            "buffernet_train.schema.yaml": schema(TrainConfig, exclude=("data", "out"))}
+
+
+def schema_text(schema: dict) -> str:
+    return ("# GENERATED from the settings dataclass named in the title: do not edit; regenerate with\n"
+            "#   python -m stages.config --write-schemas\n" + yaml.safe_dump(schema, sort_keys=False, width=120))
+
+
+def write_schemas() -> list[Path]:
+    """Write every generated schema into workflow/schemas/; returns the files written."""
+    out = []
+    for name, schema in generated_schemas().items():
+        path = SCHEMAS / name
+        path.write_text(schema_text(schema))
+        out.append(path)
+    return out
 
 
 class ConfigError(ValueError):
@@ -49,23 +87,7 @@ def deep_merge(base: dict, over: dict) -> dict:
 
 
 def read_yaml(path: Path) -> dict:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: invalid YAML ({e})") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: must be a mapping at top level, got {type(data).__name__}")
-    return data
-
-
-def reject_unknown(cls, d: dict, section: str) -> None:
-    """Raise ValueError naming ``d``'s keys that are not fields of the dataclass ``cls`` (a config section)."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(d) - known
-    if unknown:
-        raise ValueError(f"unknown {section} option(s) {sorted(unknown)}; known: {sorted(known)}")
+    return read_yaml_mapping(path, ConfigError)
 
 
 def scene_file(scene: str, _seen: tuple = ()) -> dict:
@@ -112,25 +134,28 @@ def validate(config: dict) -> None:
     """Raise ConfigError naming the first bad key/value of ``config`` (top level, then each section)."""
     _check(config, SCHEMAS / "config.schema.yaml", prefix="")
     for section, schema in SECTION_SCHEMAS.items():
-        if section in config and (SCHEMAS / schema).is_file():
-            _check(config[section], SCHEMAS / schema, prefix=f"{section}.")
-
-
-def config_hash(section: Any) -> str:
-    """Stable short hash of a config section (provenance; Snakemake reruns on params change)."""
-    blob = json.dumps(section, sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+        value: Any = config
+        for key in section.split("."):
+            value = value.get(key) if isinstance(value, dict) else None
+        if value is not None:
+            _check(value, SCHEMAS / schema, prefix=f"{section}.")
 
 
 def _check(data: Any, schema_path: Path, prefix: str) -> None:
     schema = yaml.safe_load(schema_path.read_text())
     error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(data))
     if error is not None:
-        where = prefix + ".".join(str(p) for p in error.absolute_path)
-        raise ConfigError(f"config {where or '<top>'}: {error.message} (schema {schema_path.name})")
+        raise ConfigError(f"config {describe(error, prefix.rstrip('.'))} (schema {schema_path.name})")
 
 
 def _as_list(value: Any) -> list[str]:
     if isinstance(value, str):
         return [v for v in value.split(",") if v]
     return list(value)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] != ["--write-schemas"]:
+        sys.exit("usage: python -m stages.config --write-schemas   (regenerates workflow/schemas/ from models/)")
+    for written in write_schemas():
+        print(written.relative_to(ROOT))

@@ -14,7 +14,7 @@ import pytest
 import scipy.stats
 import torch
 
-from models.pathtrace import _numeric as nm
+from tests import _numeric as nm
 from models.pathtrace.brdf import (
     SMITH_MODELS,
     eval_specular,

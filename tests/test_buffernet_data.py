@@ -12,12 +12,12 @@ import torch
 h5py = pytest.importorskip("h5py")
 
 from models.buffernet.datasets import (  # noqa: E402
-    BUFFERS, BufferDataset, BufferSample, CaptureReader, DatasetError, HypersimReader, InteriorVerseReader,
+    BUFFER_CHANNELS, BufferDataset, BufferSample, CaptureReader, DatasetError, HypersimReader, InteriorVerseReader,
     resize_sample,
 )
 from models.capture import Camera, Capture, View, write_capture  # noqa: E402
 from models.capture.exr import write_exr_channels  # noqa: E402
-from stages.synth.cameras import look_at  # noqa: E402
+from models.synth.cameras import look_at  # noqa: E402
 
 H, W = 6, 8  # 4:3 like Hypersim's 1024x768
 
@@ -227,7 +227,7 @@ def test_capture_reader_camera_space(tmp_path):
     s = reader[0]
     s.check()
     assert s.name == "capture/scene_0000/down"
-    assert set(s.buffers) == set(BUFFERS)
+    assert set(s.buffers) == set(BUFFER_CHANNELS)
     # a floor (world +y) seen by a camera looking down: camera-space normal toward the camera (+z)
     np.testing.assert_allclose(s.buffers["normal"][s.masks["normal"]], [[0, 0, 1]] * int(s.masks["normal"].sum()),
                                atol=1e-6)
@@ -301,9 +301,9 @@ def test_buffer_dataset_batches(tmp_path):
     torch.manual_seed(0)
     batch = next(iter(torch.utils.data.DataLoader(ds, batch_size=3)))
     assert batch["rgb"].shape == (3, 3, 4, 4) and batch["rgb"].dtype == torch.float32
-    for key, c in BUFFERS.items():
+    for key, c in BUFFER_CHANNELS.items():
         assert batch["buffers"][key].shape == (3, c, 4, 4) and batch["masks"][key].dtype == torch.bool
-    order = list(BUFFERS)
+    order = list(BUFFER_CHANNELS)
     assert batch["present"][2].tolist() == [k in ("diffuse", "specular", "normal", "depth") for k in order]
     assert batch["present"][0].tolist() == [k in ("diffuse", "normal", "depth", "roughness") for k in order]
     assert not batch["masks"]["f0"].any()  # no source has f0 here

@@ -11,8 +11,8 @@ from models.capture.depth_align import align_to_points
 from models.capture.points import write_points_ply
 from models.capture.types import CaptureMeta, View
 from stages.buffers.__main__ import main as buffers_main
-from stages.buffers.predict import BuffersConfig, fill_buffers, to_capture_buffers
-from stages.synth.cameras import look_at
+from models.buffernet.fill import BuffersConfig, fill_buffers, to_capture_buffers
+from models.synth.cameras import look_at
 
 
 def floor_capture(n=3, h=12, w=16):

@@ -14,18 +14,17 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from models.capture import Camera
+from models.editing import EditSpecError, apply_edit, parse_edit, parse_edits, parse_selection, select
+from models.editing.ops import hsv_to_rgb, rgb_to_hsv
 from models.gaussians import Gaussians, quats_to_rotmats, random_gaussians
+from models.pathtrace.paths import PathConfig
+from models.rendering import RenderConfig, render_view
+from models.synth.cameras import intrinsics, look_at
+from models.synth.edits import apply_edits
+from models.synth.mitsuba_scene import material_entry, to_world_matrix
+from models.synth.spec import parse_spec
 from models.tracer import Tracer, TracerConfig
 from stages.config import ConfigError, load_config
-from stages.edit import EditSpecError, parse_edit, parse_edits, select
-from stages.edit.edit import apply_edit
-from stages.edit.ops import hsv_to_rgb, rgb_to_hsv
-from stages.edit.spec import parse_selection
-from stages.render.render import RenderConfig, render_view
-from stages.synth.cameras import intrinsics, look_at
-from stages.synth.edits import apply_edits
-from stages.synth.mitsuba_scene import material_entry, to_world_matrix
-from stages.synth.spec import parse_spec
 
 
 def scene(n: int = 300, seed: int = 0) -> Gaussians:
@@ -250,7 +249,8 @@ def test_reflection_of_a_moved_object_moves():
     g = _mirror_and_ball([0.0, 0.3, 0.0])
     moved, mask, _ = run(g, [{"op": "translate", "offset": [0.4, 0.0, 0.0]}], {"diffuse": {"min": [0.5, 0, 0]}})
     assert int(mask.sum()) == 7  # the ball, not the mirror
-    imgs = [render_view(tracer.trace, camera, x, config, torch.Generator().manual_seed(0)) for x in (g, moved)]
+    imgs = [render_view(tracer.trace, camera, x, config, torch.Generator().manual_seed(0), PathConfig())
+            for x in (g, moved)]
     for img, c in zip(imgs, ([0.0, 0.3, 0.0], [0.4, 0.3, 0.0])):
         image = [c[0], -c[1], c[2]]  # the mirror image of the ball's centre
         # the red seen in the specular layer sits where the mirror image projects (within a pixel)
@@ -296,7 +296,7 @@ def test_errors_name_the_edit_op_and_key():
 def test_config_schema_checks_edits():
     with pytest.raises(ConfigError, match=r"config edits\.bad\.ops\.0.*explode.*\(schema edit\.schema\.yaml\)"):
         load_config("demo", overrides={"edits": {"bad": {"ops": [{"op": "explode"}]}}})
-    with pytest.raises(ConfigError, match=r"config edits\.bad.*'boxx'.*\(schema edit\.schema\.yaml\)"):
+    with pytest.raises(ConfigError, match=r"config unknown edits\.bad\.select option\(s\) \['boxx'\].*\(schema edit\.schema\.yaml\)"):
         load_config("demo", overrides={"edits": {"bad": {"select": {"boxx": {}}, "ops": [{"op": "delete"}]}}})
 
 
@@ -367,8 +367,8 @@ def tiny(tmp_path_factory):
     pytest.importorskip("mitsuba")
     from models.capture import read_capture
     from models.gaussians import write_ply
-    from stages.init.dense import InitConfig, dense_init
-    from stages.synth.render import render_capture
+    from models.initialisation.dense import InitConfig, dense_init
+    from models.synth.render import render_capture
 
     root = tmp_path_factory.mktemp("edit")
     cfg = load_config("demo", presets=["ci"])
@@ -383,9 +383,10 @@ def tiny(tmp_path_factory):
 def test_stage_cli_apply_truth_evaluate(tiny, capsys):
     from models.capture import read_capture
     from models.gaussians import read_ply
+    from models.synth.render import scene_views
     from stages.edit.__main__ import main
     from stages.render.__main__ import main as render_main
-    from stages.synth.render import scene_views
+    from stages.synth.__main__ import main as synth_main
 
     root, cfg = tiny
     # the init model has one roughness / F0 everywhere: select the ball by shape alone
@@ -398,7 +399,10 @@ def test_stage_cli_apply_truth_evaluate(tiny, capsys):
     out = root / "edits" / "move_ball"
     assert main(["apply", *common, "--config-json", render, "--model", str(root / "model.ply"),
                  "--capture", str(root / "capture"), "--out", str(out), "--threads", "1"]) == 0
-    assert main(["truth", *common, "--synth-json", json.dumps(cfg["synth"]), "--out", str(root / "truth")]) == 0
+    # the ground truth: the synth stage renders the test views with the edit's ground_truth ops
+    assert synth_main(["--config-json", json.dumps(cfg["synth"]), "--edits-json", json.dumps(edit["ground_truth"]),
+                       "--splits", "test", "--name", "edit:move_ball", "--no-progress",
+                       "--out", str(root / "truth")]) == 0
     assert render_main(["--config-json", render, "--model", str(root / "model.ply"), "--capture", str(root / "capture"),
                         "--out", str(root / "renders"), "--threads", "1"]) == 0
     assert main(["evaluate", "--edit", "move_ball", "--capture", str(root / "capture"), "--truth", str(root / "truth"),

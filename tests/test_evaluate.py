@@ -3,7 +3,7 @@
 import numpy as np
 
 from models.capture.exr import write_exr_channels
-from stages.evaluate import evaluate_renders, psnr, ssim
+from models.metrics import evaluate_renders, psnr, ssim
 from tests.test_init import plane_capture
 
 

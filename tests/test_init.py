@@ -6,7 +6,7 @@ import torch
 
 from models.capture import Camera, Capture, CaptureError, View, write_capture
 from models.gaussians import read_ply
-from stages.init import InitConfig, dense_init
+from models.initialisation import InitConfig, dense_init
 from stages.init.__main__ import main as init_main
 from tests.test_capture import look_at
 

@@ -14,8 +14,8 @@ from models.capture import View
 from models.capture.camera import Camera
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
-from stages.reconstruct.data import RaySet
-from stages.reconstruct.mirror_stereo import fit_plane, mirror_stereo_gaussians, mirror_views
+from models.reconstruction.data import RaySet
+from models.reconstruction.mirror_stereo import fit_plane, mirror_stereo_gaussians, mirror_views
 
 PANEL_Z, PANEL_HALF = 2.0, 0.5
 BACKGROUND = np.array([0.3, 0.3, 0.3])

@@ -19,11 +19,12 @@ from models.capture import Capture, CaptureError, View, read_capture, read_colma
 from models.capture.colmap_layout import CV_TO_GL, colmap_from_c2w
 from models.capture.depth_align import fit_scale_shift
 from models.capture.paper_layout import filmic
-from models.capture.points import linear_to_srgb, read_points_ply, srgb_to_linear
-from stages.init import InitConfig, initialise
-from stages.poses import PosesConfig, PosesError, check_photos, pose_errors, run_poses, umeyama
-from stages.synth.render import render_spec
-from stages.synth.spec import parse_spec
+from models.capture.color import linear_to_srgb, srgb_to_linear
+from models.capture.points import read_points_ply
+from models.initialisation import InitConfig, initialise
+from models.poses import PosesConfig, PosesError, check_photos, pose_errors, run_poses, umeyama
+from models.synth.render import render_spec
+from models.synth.spec import parse_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 VIEWS = 12
@@ -152,7 +153,7 @@ def test_capture_on_disk_is_normalised_with_points_and_model(posed):
 
 def test_sfm_init_then_reconstruct_loss_falls(posed):
     from models.tracer import Tracer, TracerConfig
-    from stages.reconstruct import ReconstructConfig, Trainer
+    from models.reconstruction import ReconstructConfig, Trainer
 
     capture, root = posed
     out = root / "capture"
@@ -170,7 +171,7 @@ def test_sfm_init_then_reconstruct_loss_falls(posed):
     for v in capture.views:
         v.buffers["diffuse"] = v.buffers["rgb"]
     cfg = ReconstructConfig.from_dict(dict(iterations=40, warmup=40, rays_per_step=1024, prune_from=10_000,
-                                           far_field="off", log_every=10, checkpoint_every=1000, threads=2))
+                                           far_field="off", log_every=10, checkpoint_every=1000))
     trainer = Trainer(capture, gaussians, cfg, Tracer(TracerConfig(num_threads=2)))
     losses = [trainer.train_step()["loss"] for _ in range(cfg.iterations)]
     first, last = np.mean(losses[:5]), np.mean(losses[-5:])
@@ -349,7 +350,7 @@ def test_photo_errors_before_sfm(synth, tmp_path):
     with pytest.raises(PosesError, match=r"mixed resolutions \(320x240: 3 photo\(s\) \(train_000.png, train_001.png, "
                                          r"train_002.png\); 160x120: 1 photo\(s\) \(small.png\)\)"):
         check_photos(mixed, 3)
-    with pytest.raises(ValueError, match="poses.matcher vocab_tree needs poses.vocab_tree"):
+    with pytest.raises(ValueError, match="poses needs vocab_tree .matcher vocab_tree needs the path of a COLMAP"):
         PosesConfig.from_dict({"matcher": "vocab_tree"})
     with pytest.raises(ValueError, match=r"unknown poses option\(s\) \['matching'\]"):
         PosesConfig.from_dict({"matching": "exhaustive"})

@@ -10,8 +10,9 @@ import pytest
 import yaml
 
 from stages.config import SCHEMAS
-from stages.synth.procedural import random_scene_config, render_procedural
-from stages.synth.spec import parse_spec
+from models.synth.procedural import random_scene_config
+from stages.synth.procedural import render_procedural
+from models.synth.spec import parse_spec
 
 SEEDS = range(50)
 

@@ -8,15 +8,16 @@ import torch
 
 from models.tracer import Tracer, TracerConfig
 from stages.config import load_config
-from stages.init import InitConfig, dense_init
-from stages.reconstruct import ReconstructConfig, Trainer, train
-from stages.reconstruct.data import build_rayset
-from stages.reconstruct.trainer import REFERENCE_HEIGHT, psnr
-from stages.synth import render_capture
+from models.initialisation import InitConfig, dense_init
+from models.reconstruction import ReconstructConfig, Trainer, train
+from models.reconstruction.data import build_rayset
+from models.metrics import psnr
+from models.reconstruction.trainer import REFERENCE_HEIGHT
+from models.synth import render_capture
 
 SMALL = dict(iterations=160, warmup=80, rays_per_step=768, prune_from=100, prune_every=50, log_every=10,
              reflection_fill_count=0,  # tests/test_reflection_fill.py covers it
-             checkpoint_every=40, threads=2)
+             checkpoint_every=40)
 
 
 def _scene(name: str, folder):
@@ -97,7 +98,7 @@ def test_decisions_switch_off_missing(demo):
 def test_config_errors():
     with pytest.raises(ValueError, match=r"unknown reconstruct option\(s\) \['iters'\]"):
         ReconstructConfig.from_dict({"iters": 3})
-    with pytest.raises(ValueError, match=r"unknown reconstruct.loss key\(s\) \['colour'\]"):
+    with pytest.raises(ValueError, match=r"unknown reconstruct.loss option\(s\) \['colour'\]"):
         ReconstructConfig.from_dict({"loss": {"colour": 1.0}})
 
 

@@ -10,8 +10,8 @@ import torch
 
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
-from stages.reconstruct.data import RaySet
-from stages.reconstruct.reflection_fill import (box_exit, highlight_fill_gaussians, reflection_fill_gaussians,
+from models.reconstruction.data import RaySet
+from models.reconstruction.reflection_fill import (box_exit, highlight_fill_gaussians, reflection_fill_gaussians,
                                                 seen_empty, sweep_box_scale)
 
 

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from stages.report.figures import error_map, pareto_front
+from models.metrics import pareto_front
+from stages.report.figures import error_map
 from tests.conftest import ROOT, snakemake
 
 

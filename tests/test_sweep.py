@@ -1,14 +1,18 @@
 """Speed/accuracy sweep: training-resolution resampling is exact for a pinhole camera; a quick sweep on the
-CI-sized demo yields consistent points, a Pareto-derived recommendation and a report Chromium renders."""
+CI-sized demo yields consistent points, a Pareto-derived recommendation, and the report stage draws its JSON
+into a page Chromium renders."""
 
+import json
 import math
 
 import numpy as np
 
 from models.capture import View, read_capture
 from models.capture.camera import Camera
-from stages.benchmark.sweep import SweepGrid, config_for_sweep, downsample_view, run_sweep, sweep_report
+from models.capture.resample import downsample_view
+from stages.benchmark.sweep import SweepGrid, config_for_sweep, run_sweep
 from stages.config import load_config
+from stages.report.__main__ import main as report_main
 from tests.test_report import chromium_dom, loaded_images
 
 
@@ -60,7 +64,8 @@ def test_quick_sweep_on_tiny_demo(tiny_demo, tmp_path):
     for group, cost in (("training", "train_s"), ("render", "render_s_per_view")):
         fast, bal, best = (rec[(group, role)] for role in ("fastest", "balanced", "quality"))
         assert fast[cost] <= bal[cost] and fast["psnr_final"] <= bal["psnr_final"] <= best["psnr_final"]
+    (tmp_path / "sweep.json").write_text(json.dumps(result))
     html = tmp_path / "sweep.html"
-    html.write_text(sweep_report(result, "sweep"))
+    assert report_main(["sweep", str(tmp_path / "sweep.json"), "--out", str(html)]) == 0
     ok, total = loaded_images(chromium_dom(html))
     assert total == 2 and ok == 2  # the training and the render Pareto plots

@@ -12,11 +12,11 @@ pytest.importorskip("mitsuba")
 
 from models.capture import Camera  # noqa: E402
 from stages.config import load_config  # noqa: E402
-from stages.synth.cameras import intrinsics, look_at  # noqa: E402
-from stages.synth.integrator import render_view  # noqa: E402
-from stages.synth.mitsuba_scene import load_scene  # noqa: E402
-from stages.synth.render import scene_views  # noqa: E402
-from stages.synth.spec import parse_spec  # noqa: E402
+from models.synth.cameras import intrinsics, look_at  # noqa: E402
+from models.synth.integrator import render_view  # noqa: E402
+from models.synth.mitsuba_scene import load_scene  # noqa: E402
+from models.synth.render import scene_views  # noqa: E402
+from models.synth.spec import parse_spec  # noqa: E402
 
 LIGHT = {"name": "light", "shape": "rectangle", "material": {"type": "diffuse", "base_color": [0, 0, 0]},
          "transform": {"translate": [0, 2.4, 0], "rotate": [{"axis": [1, 0, 0], "angle": 90}], "scale": 0.6},
@@ -261,7 +261,7 @@ def test_rgb_matches_mitsuba_path_integrator():
     """Our RGB is an unbiased estimate of the same image as Mitsuba's own ``path`` integrator
     (perspective sensor built from the same camera): checks the MIS/NEE loop and, per block of
     pixels, the image orientation. Ours max_depth = k scattering vertices = Mitsuba max_depth k + 1."""
-    from stages.synth.mitsuba_scene import build_scene_dict, mitsuba
+    from models.synth.mitsuba_scene import build_scene_dict, mitsuba
 
     mi = mitsuba()
     spp = 256

@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from stages.config import ConfigError, load_config
-from stages.synth.edits import apply_edits
-from stages.synth.mitsuba_scene import conductor_f0, material_entry, to_world_matrix
-from stages.synth.spec import parse_spec
+from models.synth.edits import apply_edits
+from models.synth.mitsuba_scene import conductor_f0, material_entry, to_world_matrix
+from models.synth.spec import parse_spec
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +85,7 @@ def test_set_f0_per_material(demo):
 
 def test_set_f0_conductor_with_complex_ior():
     cfg = {"type": "conductor", "roughness": 0.1, "eta": [0.2, 0.9, 1.1], "k": [3.9, 2.4, 2.1]}
-    from stages.synth.spec import parse_material
+    from models.synth.spec import parse_material
     m = parse_material(cfg, "m", {})
     assert np.all(np.asarray(conductor_f0(m)) < 1)
 
@@ -128,7 +128,7 @@ def test_spec_errors_name_key_and_value(demo_cfg):
 
 
 def test_schema_rejects_bad_yaml_values():
-    with pytest.raises(ConfigError, match=r"config synth\.spp: .*(minimum|less than)"):
+    with pytest.raises(ConfigError, match=r"config synth\.spp must be >= 1, got 0 \(schema synth\.schema\.yaml\)"):
         load_config("demo", overrides={"synth": {"spp": 0}})
     with pytest.raises(ConfigError, match=r"synth\.objects\.0\.material\.roughness"):
         cfg = yaml.safe_load((Path(__file__).parents[1] / "configs/scenes/demo.yaml").read_text())

@@ -5,8 +5,8 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from stages.synth.lobes import principled_diffuse_eval, principled_specular_eval  # noqa: E402
-from stages.synth.mitsuba_scene import mitsuba  # noqa: E402
+from models.synth.lobes import principled_diffuse_eval, principled_specular_eval  # noqa: E402
+from models.synth.mitsuba_scene import mitsuba  # noqa: E402
 
 
 def _random_dirs(rng, n):

@@ -12,7 +12,7 @@ pytest.importorskip("mitsuba")
 
 from models.capture import read_capture  # noqa: E402
 from stages.config import load_config  # noqa: E402
-from stages.synth import render_capture  # noqa: E402
+from models.synth import render_capture  # noqa: E402
 from stages.synth.__main__ import main  # noqa: E402
 
 

@@ -22,11 +22,10 @@ import torch
 import yaml
 
 from models.capture import Camera, Capture, View, read_view_buffers, write_capture
+from models.editing import apply_edit, parse_edits
 from models.gaussians import Gaussians, read_ply, write_ply
-from stages.edit import parse_edits
-from stages.edit.edit import apply_edit
-from stages.evaluate.metrics import psnr
-from stages.render.render import render_view
+from models.metrics.image import psnr
+from models.rendering import render_view
 from stages.view import ViewerSession, ViewSettings, camera_from_viser, gizmo_ops, resize_camera, viser_from_camera
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -126,7 +125,8 @@ def test_browser_camera_round_trip_renders_the_same_image():
     s.set_camera(back)
     frame = s.step()
     assert frame is not None and s.step() is None  # primary only: one frame, then idle
-    ref = render_view(s.tracer.trace, cam, s.original, s.view.config(), torch.Generator().manual_seed(0))
+    ref = render_view(s.tracer.trace, cam, s.original, s.view.config(), torch.Generator().manual_seed(0),
+                      s.model.path)
     np.testing.assert_array_equal(s.view.layers()["final"], ref["final"])
     s.close()
 
@@ -205,7 +205,7 @@ def test_saved_spec_replays_through_the_edit_stage(tmp_path):
     cfg = s.view.config()
     assert (cfg.spp, cfg.seed, cfg.max_path_length, cfg.denoise) == (6, 3, 3, True)
     s.tracer.update(replayed, rebuild=True)
-    ref = render_view(s.tracer.trace, cam, replayed, cfg, torch.Generator().manual_seed(cfg.seed))
+    ref = render_view(s.tracer.trace, cam, replayed, cfg, torch.Generator().manual_seed(cfg.seed), s.model.path)
     assert psnr(viewer["final"], ref["final"]) > 40
     np.testing.assert_array_equal(viewer["final"], ref["final"])  # in fact bit for bit
 
@@ -346,7 +346,8 @@ def test_viewer_in_headless_chromium(tmp_path):
         np.testing.assert_allclose(bcam.c2w, cam.c2w, atol=1e-4)
         assert bcam.fl_x == pytest.approx(cam.fl_x, rel=1e-3) and bcam.fl_y == pytest.approx(cam.fl_y, rel=1e-3)
         s.tracer.update(s.original)
-        ref = render_view(s.tracer.trace, cam, s.original, loop.view.config(), torch.Generator().manual_seed(0))
+        ref = render_view(s.tracer.trace, cam, s.original, loop.view.config(), torch.Generator().manual_seed(0),
+                      s.model.path)
         assert psnr(loop.view.layers()["diffuse"], ref["diffuse"]) > 40
 
         def shot_matching(frame, timeout=30.0):

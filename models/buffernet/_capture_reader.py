@@ -19,11 +19,12 @@ import numpy as np
 
 from models.capture import Camera, CaptureError, read_capture, read_view_buffers
 from models.capture.io import _camera, _resolve_image
+from models.capture.layers import REGISTRY
 from models.capture.types import SPLITS
 
 from ._sample import BufferSample, DatasetError, distance_to_planar, finalize, orient_normals
 
-LAYERS = ("rgb", "diffuse", "specular", "emission", "depth", "normal", "roughness", "f0", "mask")
+LAYERS = tuple(REGISTRY)  # every capture layer (models/capture/layers.py)
 
 
 def view_sample(name: str, camera: Camera, layers: dict[str, np.ndarray], *, mask_threshold: float = 0.5,

@@ -19,8 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# Buffer names in canonical order, and their channel counts.
-BUFFERS: dict[str, int] = {"diffuse": 3, "specular": 3, "normal": 3, "depth": 1, "roughness": 1, "f0": 3}
+from models.capture.layers import PREDICTED, channels
+
+# Buffer names in the network's prompt order, and their channel counts (models/capture/layers.py).
+BUFFER_CHANNELS: dict[str, int] = channels(PREDICTED)
 
 
 class DatasetError(ValueError):
@@ -41,9 +43,9 @@ class BufferSample:
         h, w = self.rgb.shape[:2]
         assert self.rgb.shape == (h, w, 3) and self.rgb.dtype == np.float32, self.name
         assert np.isfinite(self.rgb).all(), self.name
-        assert set(self.buffers) == set(self.masks) and set(self.buffers) <= set(BUFFERS), self.name
+        assert set(self.buffers) == set(self.masks) and set(self.buffers) <= set(BUFFER_CHANNELS), self.name
         for key, arr in self.buffers.items():
-            shape = (h, w, 3) if BUFFERS[key] == 3 else (h, w)
+            shape = (h, w, 3) if BUFFER_CHANNELS[key] == 3 else (h, w)
             assert arr.shape == shape and arr.dtype == np.float32, (self.name, key, arr.shape)
             assert self.masks[key].shape == (h, w) and self.masks[key].dtype == bool, (self.name, key)
             assert np.isfinite(arr).all(), (self.name, key)
@@ -88,7 +90,7 @@ def finalize(name: str, rgb: np.ndarray, buffers: dict[str, np.ndarray], masks: 
     rgb_ok = np.isfinite(rgb).all(-1)
     base = rgb_ok if base is None else (base & rgb_ok)
     out_b, out_m = {}, {}
-    for key in BUFFERS:
+    for key in BUFFER_CHANNELS:
         if key not in buffers:
             continue
         arr = np.asarray(buffers[key], dtype=np.float32)

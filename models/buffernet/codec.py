@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-BUFFERS = ("diffuse", "specular", "normal", "depth", "roughness", "f0")
+from models.capture.layers import PREDICTED as BUFFERS  # the network's buffers, in prompt order
 
 # One prompt per buffer, RGB<->X style (REFERENCE.md, "Buffer network recipes"). Changing a prompt changes
 # what a trained model outputs for that buffer: prompts are part of the model.

@@ -24,10 +24,10 @@ import torch.nn.functional as F
 from ._capture_reader import CaptureReader
 from ._hypersim import HypersimReader
 from ._interiorverse import InteriorVerseReader
-from ._sample import BUFFERS, BufferSample, DatasetError
+from ._sample import BUFFER_CHANNELS, BufferSample, DatasetError
 
 __all__ = [
-    "BUFFERS", "BufferDataset", "BufferSample", "CaptureReader", "DatasetError", "HypersimReader",
+    "BUFFER_CHANNELS", "BufferDataset", "BufferSample", "CaptureReader", "DatasetError", "HypersimReader",
     "InteriorVerseReader", "resize_sample",
 ]
 
@@ -84,8 +84,8 @@ class BufferDataset(torch.utils.data.Dataset):
     (seeded per DataLoader worker). ``augment=False``: the centred largest square, no flip.
 
     An item is a dict that the default collate batches: ``rgb`` [3, S, S] float32 (linear HDR);
-    ``buffers`` name -> [C, S, S] float32 and ``masks`` name -> [S, S] bool for every name in ``BUFFERS``
-    (zeros / all False where the source lacks the buffer); ``present`` [len(BUFFERS)] bool in ``BUFFERS``
+    ``buffers`` name -> [C, S, S] float32 and ``masks`` name -> [S, S] bool for every name in ``BUFFER_CHANNELS``
+    (zeros / all False where the source lacks the buffer); ``present`` [len(BUFFERS)] bool in ``BUFFER_CHANNELS``
     order; ``name`` str.
     """
 
@@ -124,11 +124,11 @@ class BufferDataset(torch.utils.data.Dataset):
             top, left, flip = (h - side) // 2, (w - side) // 2, False
         out = resize_sample(s, (top, left, side, side), self.size, flip=flip)
         full_b, full_m = {}, {}
-        for key, c in BUFFERS.items():
+        for key, c in BUFFER_CHANNELS.items():
             if key in out["buffers"]:
                 full_b[key], full_m[key] = out["buffers"][key], out["masks"][key]
             else:
                 full_b[key] = torch.zeros(c, self.size, self.size)
                 full_m[key] = torch.zeros(self.size, self.size, dtype=torch.bool)
-        present = torch.tensor([k in out["buffers"] for k in BUFFERS], dtype=torch.bool)
+        present = torch.tensor([k in out["buffers"] for k in BUFFER_CHANNELS], dtype=torch.bool)
         return {"rgb": out["rgb"], "buffers": full_b, "masks": full_m, "present": present, "name": s.name}

@@ -33,7 +33,8 @@ from .depth_align import fit_scale_shift
 from .errors import CaptureError
 from .layers import LAYERS
 from .paper_layout import inverse_filmic
-from .points import colmap_model_dir, srgb_to_linear
+from .color import srgb_to_linear
+from .points import colmap_model_dir
 from .types import Capture, CaptureMeta, View, check_buffer
 
 PRIOR_BUFFERS = ("render", "diffuse", "specular", "roughness", "metalness", "depth", "normal")
@@ -71,16 +72,6 @@ def camera_from_colmap(cam, cam_from_world: np.ndarray, where: str) -> Camera:
     camera = Camera(int(cam.width), int(cam.height), fx, fy, cx, cy, c2w_from_colmap(cam_from_world))
     camera.check(where)
     return camera
-
-
-def read_photo(path: str | Path) -> np.ndarray:
-    """A photo as linear RGB float32 [H, W, 3]: integer images are sRGB-decoded, float images kept;
-    grey is replicated, alpha dropped. Raises CaptureError naming the file if it cannot be read."""
-    pixels, integer = _read_pixels(Path(path))
-    if pixels.shape[2] < 3:
-        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
-    pixels = pixels[:, :, :3]
-    return (srgb_to_linear(pixels) if integer else pixels).astype(np.float32)
 
 
 def image_size(path: str | Path) -> tuple[int, int]:

@@ -12,6 +12,8 @@ from typing import Iterable
 import numpy as np
 import yaml
 
+from models.settings import read_yaml_mapping
+
 from .camera import Camera
 from .errors import CaptureError
 from .exr import read_exr_channels, write_exr_channels
@@ -186,11 +188,6 @@ def _resolve_image(root: Path, file_path: str, where: str) -> Path:
 def _read_meta(path: Path) -> CaptureMeta:
     if not path.is_file():
         return CaptureMeta(source="unknown")
-    try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise CaptureError(f"{path}: invalid YAML ({e})") from None
-    if not isinstance(raw, dict):
-        raise CaptureError(f"{path}: must be a mapping, got {type(raw).__name__}")
+    raw = read_yaml_mapping(path, CaptureError)
     known = {k: raw[k] for k in ("source", "color_space", "extent", "units", "extra") if k in raw}
     return CaptureMeta(**known)

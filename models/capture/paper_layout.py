@@ -20,14 +20,13 @@ import OpenImageIO as oiio
 
 from .camera import Camera
 from .errors import CaptureError
-from .layers import LAYERS
+from .layers import COLOUR, LAYERS
 from .types import Capture, CaptureMeta, View, check_buffer
 
 EXTENSIONS = (".exr", ".tiff", ".tif", ".png")
 # capture layer -> the word replacing "render" in the file name
 BUFFER_WORDS = {"rgb": "render", "diffuse": "diffuse", "specular": "specular", "roughness": "roughness",
                 "normal": "normal", "depth": "depth", "f0": "f0"}
-COLOUR_LAYERS = ("rgb", "diffuse", "specular")
 # 8-bit values are decoded at most to this tonemapped level (255 maps to infinite radiance).
 MAX_TONEMAPPED = 1.0 - 1.0 / 512.0
 
@@ -127,7 +126,7 @@ def _read_buffer(file: Path, layer: str) -> np.ndarray:
         raise CaptureError(f"{file}: layer {layer!r} needs {want} channel(s), file has {spec.nchannels}")
     pixels = pixels[:, :, :want]
     if eight_bit:
-        if layer in COLOUR_LAYERS:
+        if layer in COLOUR:
             pixels = inverse_filmic(pixels)
         elif layer == "normal":
             pixels = pixels * 2.0 - 1.0

@@ -21,21 +21,10 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement
 
+from .color import srgb_to_linear
 from .errors import CaptureError
 
 POINTS_FILE = "points3D.ply"
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values in [0, 1] -> linear (the IEC 61966-2-1 curve)."""
-    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """Linear values -> sRGB-encoded in [0, 1] (clipped)."""
-    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 def write_points_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray) -> None:

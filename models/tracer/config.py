@@ -1,44 +1,42 @@
-"""Tracer configuration."""
+"""Tracer configuration (``reconstruct.tracer`` in the pipeline config; stored with every trained model)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from models.settings import setting
+
 
 @dataclass
 class TracerConfig:
-    # Kernel exponent p of exp(-r^(2p) / (2p)); 1 = plain Gaussian, 3 = flatter top (reference).
-    kernel_p: int = 3
-    # A hit is accepted when alpha = min(alpha_max, opacity * response) > alpha_min.
-    alpha_min: float = 0.005
-    # Upper clamp of alpha, keeps 1 - alpha > 0 for the backward pass.
-    alpha_max: float = 0.9999
-    # Blending stops before a hit whose incoming transmittance is below this threshold.
-    transmittance_threshold: float = 0.01
-    # Hits at ray parameter t <= t_min are ignored (near distance; reflection-ray offset).
-    t_min: float = 0.0
-    # Hits taken per integration round ("k nearest beyond the last taken").
-    k: int = 16
-    # Replay buffer slots per ray at start (accepted hits stored for integration and backward).
-    replay_capacity: int = 64
-    # Hard ceiling when the replay buffer grows after an overflow; beyond it trace() raises.
-    max_replay_capacity: int = 4096
-    # CPU only: rays are split over this many Python threads (one Warp launch each).
-    num_threads: int = 2
-    # Ablation: 3DGRT-style integration, re-traversing the BVH for each round of k nearest hits.
-    repeated_kbuffer: bool = False
-    # Ablation: skip the per-candidate oriented-box test (test the world AABB from the BVH only).
-    world_aabb_only: bool = False
-    # Ablation: rebuild the BVH on every update() instead of refitting it.
-    always_rebuild: bool = False
-    # Stretch: own Morton-ordered BVH traversed front to back, stopping early once T < threshold
-    # (hit_count then counts hits found before stopping). Excludes repeated_kbuffer.
-    ordered_traversal: bool = False
-    # Gaussians per leaf of the ordered BVH.
-    ordered_leaf_size: int = 4
-    # Node-heap entries per ray for the ordered traversal; a ray that needs more falls back
-    # to the single traversal (same result, no early exit).
-    ordered_heap_size: int = 128
+    """Gaussian ray tracer settings."""
+
+    kernel_p: int = setting(3, "kernel exponent p of exp(-r^(2p) / (2p)); 1 = plain Gaussian, 3 = flatter top "
+                            "(reference)", minimum=1)
+    alpha_min: float = setting(0.005, "a hit is accepted when alpha = min(alpha_max, opacity x response) > alpha_min",
+                               exclusiveMinimum=0, exclusiveMaximum=1)
+    alpha_max: float = setting(0.9999, "upper clamp of alpha, keeps 1 - alpha > 0 for the backward pass",
+                               exclusiveMinimum=0, exclusiveMaximum=1)
+    transmittance_threshold: float = setting(0.01, "blending stops before a hit whose incoming transmittance is "
+                                             "below this threshold", minimum=0, exclusiveMaximum=1)
+    t_min: float = setting(0.0, "hits at ray parameter t <= t_min are ignored (near distance; reflection offset)",
+                           minimum=0)
+    k: int = setting(16, "hits taken per integration round (k nearest beyond the last taken)", minimum=1)
+    replay_capacity: int = setting(64, "replay buffer slots per ray at start (accepted hits stored for "
+                                   "integration and backward)", minimum=1)
+    max_replay_capacity: int = setting(4096, "hard ceiling when the replay buffer grows after an overflow; beyond "
+                                       "it trace() raises", minimum=1)
+    num_threads: int = setting(2, "CPU only: rays are split over this many Python threads (one Warp launch each)",
+                               runtime=True, minimum=1)
+    repeated_kbuffer: bool = setting(False, "ablation: 3DGRT-style integration, re-traversing the BVH for each round "
+                                     "of k nearest hits")
+    world_aabb_only: bool = setting(False, "ablation: skip the per-candidate oriented-box test (world AABB only)")
+    always_rebuild: bool = setting(False, "ablation: rebuild the BVH on every update() instead of refitting it")
+    ordered_traversal: bool = setting(False, "own Morton-ordered BVH traversed front to back, stopping once "
+                                      "T < threshold (excludes repeated_kbuffer)")
+    ordered_leaf_size: int = setting(4, "Gaussians per leaf of the ordered BVH", minimum=1)
+    ordered_heap_size: int = setting(128, "node-heap entries per ray of the ordered traversal; a ray that needs more "
+                                     "falls back to the single traversal (same result, no early exit)", minimum=2)
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel_p, int) or self.kernel_p < 1:

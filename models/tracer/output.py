@@ -6,8 +6,10 @@ from dataclasses import dataclass, field
 
 import torch
 
+from models.capture.layers import TRACED, channels
+
 # Differentiable per-ray layers, in the order the kernels pack them, with their channel count.
-LAYERS: dict[str, int] = {"diffuse": 3, "depth": 1, "normal": 3, "roughness": 1, "f0": 3}
+LAYERS: dict[str, int] = channels(TRACED)
 
 
 @dataclass

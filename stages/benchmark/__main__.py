@@ -1,7 +1,7 @@
 """CLI: python -m stages.benchmark tracer [--sizes 50000,200000] [--res 128,256] [--threads 1,2]
 [--repeats 3] [--device cpu] [--torch-threads 1] [--out FILE.json] [--quick]
      python -m stages.benchmark sweep --capture results/demo/capture --scene demo --out results/sweep/demo
-[--iterations N] [--quick] (speed/accuracy sweep: see python -m stages.benchmark sweep --help)"""
+[--iterations N] [--quick] (speed/accuracy sweep -> sweep.json; python -m stages.report sweep draws it)"""
 
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def write_json_atomic(path: Path, data: dict) -> None:
 
 
 def sweep_main(argv) -> int:
-    from stages.benchmark.sweep import SweepGrid, config_for_sweep, format_table, run_sweep, sweep_report
+    from stages.benchmark.sweep import SweepGrid, config_for_sweep, format_table, run_sweep
     from stages.cli import single_threaded_torch
     from stages.config import ConfigError, load_config
 
@@ -66,7 +66,8 @@ def sweep_main(argv) -> int:
         description="Speed/accuracy sweep on one scene: retrain with one knob changed at a time (max path length, "
         "training resolution, voxel size, kernel p, transmittance threshold) and re-render the base model with "
         "render-time knobs (spp with/without denoiser, path length, replay k, transmittance threshold). Prints a "
-        "table, writes <out>/sweep.json and <out>/report.html (Pareto plots, recommended settings).",
+        "table and writes <out>/sweep.json; `python -m stages.report sweep <out>/sweep.json` draws the Pareto "
+        "plots and recommended settings.",
     )
     p.add_argument("--capture", required=True, type=Path, help="the scene's capture (results/<scene>/capture)")
     p.add_argument("--scene", required=True, help="scene whose merged config is the base point")
@@ -95,8 +96,7 @@ def sweep_main(argv) -> int:
     result["iterations"] = config["reconstruct"].get("iterations")
     print(format_table(result))
     write_json_atomic(a.out / "sweep.json", result)
-    (a.out / "report.html").write_text(sweep_report(result, f"speed/accuracy sweep: {a.scene}"))
-    print(f"wrote {a.out / 'sweep.json'} and {a.out / 'report.html'}")
+    print(f"wrote {a.out / 'sweep.json'} (HTML: python -m stages.report sweep {a.out / 'sweep.json'})")
     return 0
 
 

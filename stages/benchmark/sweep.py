@@ -4,13 +4,16 @@ Two kinds of points:
 
 * training points retrain the scene from its dense init with one knob changed from the base schedule
   (max path length, training resolution, voxel size = number of Gaussians, kernel p, transmittance
-  threshold) and are scored by rendering the test views at the base render settings;
+  threshold); each is saved as a model folder (gaussians.ply + model.yaml) and scored by rendering the test
+  views at the base render settings with the model's own settings, as the render stage would;
 * render points reuse the base model and change only render-time knobs (samples per pixel with and
   without the denoiser, max path length, replay k, transmittance threshold).
 
 Every point records wall time (training; rendering per test view), PSNR per layer on the test views
 (linear, as ``evaluate``), and the Gaussian count. The Pareto front (no other point both faster and
-better in final PSNR) gives the recommended settings.
+better in final PSNR) gives the recommended settings. The sweep writes JSON; ``python -m stages.report sweep``
+draws it. Every step is the library the stages call (models/initialisation, models/reconstruction,
+models/rendering, models/metrics).
 """
 
 from __future__ import annotations
@@ -25,14 +28,15 @@ from typing import Callable
 import numpy as np
 import torch
 
-from models.capture import Capture, View
-from models.capture.camera import Camera
-from models.tracer import Tracer, TracerConfig
-from stages.evaluate.evaluate import evaluate_renders
-from stages.init.dense import InitConfig, dense_init
-from stages.reconstruct.config import ReconstructConfig
-from stages.reconstruct.trainer import Trainer, train
-from stages.render.render import RenderConfig, render_view, write_layers
+from models.capture import Capture
+from models.capture.resample import downsample_train
+from models.initialisation import InitConfig, dense_init
+from models.metrics import evaluate_renders, recommend
+from models.reconstruction import ReconstructConfig, Trainer, train
+from models.rendering import RenderConfig, render_view, write_layers
+from models.tracer import Tracer
+from models.trained import load_model, save_model
+from stages.config import deep_merge
 
 
 @dataclass
@@ -56,63 +60,22 @@ class SweepGrid:
                    spp=[1, 4], render_k=[8], render_transmittance=[0.05], test_views=1)
 
 
-def downsample_view(view: View, factor: int) -> View:
-    """The view at 1/``factor`` resolution: buffers box-filtered over factor x factor pixels (normals
-    renormalised, the mask kept only where all pixels were valid, depth averaged over valid pixels), the
-    camera's intrinsics scaled so every low-resolution pixel sees the centre of its block."""
-    if factor == 1:
-        return view
-    cam = view.camera
-    h, w = cam.height // factor, cam.width // factor
-    if h < 1 or w < 1:
-        raise ValueError(f"view {view.name!r}: {cam.width}x{cam.height} is too small to downsample by {factor}")
-
-    def pool(a: np.ndarray) -> np.ndarray:
-        a = a[:h * factor, :w * factor]
-        return a.reshape(h, factor, w, factor, -1).mean(axis=(1, 3))
-
-    bufs = {}
-    valid = np.ones((cam.height, cam.width, 1), np.float32)
-    if "mask" in view.buffers:
-        valid = valid * (view.buffers["mask"] > 0.5)
-    if "depth" in view.buffers:
-        valid = valid * (view.buffers["depth"] > 0)
-    cover = pool(valid)
-    for layer, arr in view.buffers.items():
-        if layer == "mask":
-            bufs[layer] = (cover > 0.999).astype(np.float32)
-        elif layer == "depth":
-            bufs[layer] = (pool(arr * valid) / np.maximum(cover, 1e-8)).astype(np.float32)
-        elif layer == "normal":
-            n = pool(arr)
-            bufs[layer] = (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)).astype(np.float32)
-        else:
-            bufs[layer] = pool(arr).astype(np.float32)
-    if "depth" in bufs and "mask" not in bufs:
-        bufs["mask"] = (cover > 0.999).astype(np.float32)
-    camera = Camera(w, h, cam.fl_x / factor, cam.fl_y / factor, cam.cx / factor, cam.cy / factor, cam.c2w)
-    return View(view.name, camera, view.split, bufs)
-
-
-def downsample_train(capture: Capture, factor: int) -> Capture:
-    """``capture`` with its training views at 1/``factor`` resolution (test views unchanged)."""
-    views = [downsample_view(v, factor) if v.split == "train" else v for v in capture.views]
-    return Capture(views, capture.meta)
-
-
-def score(capture: Capture, gaussians, render_cfg: RenderConfig, tracer_cfg: TracerConfig, device: str,
-          test_views: int, work: Path) -> dict:
-    """Render ``test_views`` test views and compare with the ground truth: PSNR per layer and seconds per view."""
-    tracer = Tracer(tracer_cfg, device=device)
+def score(capture: Capture, model: Path, render_cfg: RenderConfig, device: str, test_views: int, work: Path,
+          tracer_over: dict | None = None) -> dict:
+    """Render ``test_views`` test views of the model folder ``model`` (its tracer / path settings, with
+    ``tracer_over`` on top) and compare with the ground truth: PSNR per layer and seconds per view."""
+    gaussians, settings = load_model(model)
+    tracer = Tracer(settings.tracer_config(**(tracer_over or {})), device=device)
     try:
         tracer.update(gaussians)
         views = capture.split("test")[:test_views]
         generator = torch.Generator().manual_seed(render_cfg.seed)
-        render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, denoise=False), generator)  # warm
+        render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, denoise=False), generator,
+                    settings.path)  # warm-up
         seconds = []
         for view in views:
             t0 = time.perf_counter()
-            img = render_view(tracer.trace, view.camera, gaussians, render_cfg, generator)
+            img = render_view(tracer.trace, view.camera, gaussians, render_cfg, generator, settings.path)
             seconds.append(time.perf_counter() - t0)
             write_layers(work, view.name, img)
     finally:
@@ -124,17 +87,44 @@ def score(capture: Capture, gaussians, render_cfg: RenderConfig, tracer_cfg: Tra
 
 
 def _train(capture: Capture, init_cfg: InitConfig, recon: ReconstructConfig, device: str, work: Path):
+    """Dense init + reconstruction into the model folder ``work``; returns (model folder, Gaussians, seconds)."""
     t0 = time.perf_counter()
     init, _ = dense_init(capture, init_cfg)
-    tracer = Tracer(TracerConfig(kernel_p=recon.kernel_p, transmittance_threshold=recon.transmittance_threshold,
-                                 num_threads=recon.threads), device=device)
+    tracer = Tracer(recon.tracer, device=device)
     try:
         trainer = Trainer(capture, init, recon, tracer)
         train(trainer, work, progress=False)
-        gaussians = trainer.gaussians().to()
+        save_model(work, trainer.gaussians(), trainer.settings())
+        count = len(trainer.params["means"])
     finally:
         tracer.close()
-    return gaussians, time.perf_counter() - t0
+    return work, count, time.perf_counter() - t0
+
+
+def training_points(grid: SweepGrid, base_recon: dict, base_init: dict) -> list[tuple[str, dict, dict, int]]:
+    """(name, reconstruct overrides, init overrides, training downsample factor) of every training point."""
+    recon = ReconstructConfig.from_dict(base_recon)
+    points = [("base", {}, {}, 1)]
+    points += [(f"train path {n}", {"max_path_length": n}, {}, 1) for n in grid.path_length
+               if n != recon.max_path_length]
+    points += [(f"train res 1/{f}", {}, {}, f) for f in grid.train_downsample if f != 1]
+    voxel = base_init.get("voxel_fraction", InitConfig.voxel_fraction)
+    points += [(f"voxel x{s:g}", {}, {"voxel_fraction": voxel * s}, 1) for s in grid.voxel_scale if s != 1]
+    points += [(f"kernel p {p}", {"tracer": {"kernel_p": p}}, {}, 1) for p in grid.kernel_p
+               if p != recon.tracer.kernel_p]
+    points += [(f"train T {t:g}", {"tracer": {"transmittance_threshold": t}}, {}, 1)
+               for t in grid.train_transmittance if t != recon.tracer.transmittance_threshold]
+    return points
+
+
+def render_points(grid: SweepGrid) -> list[tuple[str, dict, dict]]:
+    """(name, render overrides, tracer overrides) of every render point."""
+    points = [(f"spp {spp}{' +dn' if dn else ''}", {"spp": spp, "denoise": dn}, {})
+              for spp in grid.spp for dn in (True, False)]
+    points += [(f"render path {n}", {"max_path_length": n}, {}) for n in grid.path_length]
+    points += [(f"k {k}", {}, {"k": k}) for k in grid.render_k]
+    points += [(f"render T {t:g}", {}, {"transmittance_threshold": t}) for t in grid.render_transmittance]
+    return points
 
 
 def run_sweep(capture: Capture, config: dict, grid: SweepGrid, device: str = "cpu",
@@ -145,16 +135,7 @@ def run_sweep(capture: Capture, config: dict, grid: SweepGrid, device: str = "cp
     base_render = dict(config.get("render", {}))
     base_render.update(path_views=0, video=False)
     base_render.setdefault("spp", RenderConfig.spp)
-    recon_base = ReconstructConfig.from_dict(base_recon)
-    training = [("base", {}, {}, 1)]
-    training += [(f"train path {n}", {"max_path_length": n}, {}, 1) for n in grid.path_length
-                 if n != recon_base.max_path_length]
-    training += [(f"train res 1/{f}", {}, {}, f) for f in grid.train_downsample if f != 1]
-    voxel = base_init.get("voxel_fraction", InitConfig.voxel_fraction)
-    training += [(f"voxel x{s:g}", {}, {"voxel_fraction": voxel * s}, 1) for s in grid.voxel_scale if s != 1]
-    training += [(f"kernel p {p}", {"kernel_p": p}, {}, 1) for p in grid.kernel_p if p != recon_base.kernel_p]
-    training += [(f"train T {t:g}", {"transmittance_threshold": t}, {}, 1) for t in grid.train_transmittance
-                 if t != recon_base.transmittance_threshold]
+    training = training_points(grid, base_recon, base_init)
     points = []
     tmp = tempfile.TemporaryDirectory(prefix="sweep_") if work_dir is None else None
     work = Path(tmp.name) if tmp else Path(work_dir)
@@ -163,62 +144,33 @@ def run_sweep(capture: Capture, config: dict, grid: SweepGrid, device: str = "cp
         _train(capture, InitConfig.from_dict(base_init),
                ReconstructConfig.from_dict({**base_recon, "iterations": 2, "warmup": 1, "prune_from": 10**9}),
                device, work / "warmup")
-        base_model = None
+        base_model = base_count = None
         for i, (name, recon_over, init_over, factor) in enumerate(training):
             progress(f"[{i + 1}/{len(training)}] training: {name}")
-            recon = ReconstructConfig.from_dict({**base_recon, **recon_over})
+            recon = ReconstructConfig.from_dict(deep_merge(base_recon, recon_over))
             train_capture = downsample_train(capture, factor) if factor > 1 else capture
-            gaussians, seconds = _train(train_capture, InitConfig.from_dict({**base_init, **init_over}), recon,
-                                        device, work / f"train_{i}")
+            model, count, seconds = _train(train_capture, InitConfig.from_dict({**base_init, **init_over}), recon,
+                                           device, work / f"train_{i}")
             if name == "base":
-                base_model = gaussians
-            render_cfg = RenderConfig.from_dict({**base_render, "max_path_length": recon.max_path_length})
-            tracer_cfg = TracerConfig(kernel_p=recon.kernel_p, transmittance_threshold=recon.transmittance_threshold,
-                                      num_threads=recon.threads)
-            result = score(capture, gaussians, render_cfg, tracer_cfg, device, grid.test_views, work / f"eval_{i}")
-            points.append({"name": name, "group": "training", "train_s": round(seconds, 2),
-                           "gaussians": len(gaussians), **result})
+                base_model, base_count = model, count
+            # the model's own path length and tracer settings (model.yaml), as the render stage renders it
+            render_cfg = RenderConfig.from_dict({**base_render, "max_path_length": None, "sampler": None})
+            result = score(capture, model, render_cfg, device, grid.test_views, work / f"eval_{i}")
+            points.append({"name": name, "group": "training", "train_s": round(seconds, 2), "gaussians": count,
+                           **result})
             progress(f"    {points[-1]['train_s']:.0f} s, final {result['psnr_final']:.2f} dB")
-        renders = []
-        for spp in grid.spp:
-            for dn in (True, False):
-                renders.append((f"spp {spp}{' +dn' if dn else ''}", {"spp": spp, "denoise": dn}, {}))
-        renders += [(f"render path {n}", {"max_path_length": n}, {}) for n in grid.path_length]
-        renders += [(f"k {k}", {}, {"k": k}) for k in grid.render_k]
-        renders += [(f"render T {t:g}", {}, {"transmittance_threshold": t}) for t in grid.render_transmittance]
+        renders = render_points(grid)
         for j, (name, render_over, tracer_over) in enumerate(renders):
             progress(f"[{j + 1}/{len(renders)}] rendering: {name}")
             render_cfg = RenderConfig.from_dict({**base_render, **render_over})
-            tracer_cfg = TracerConfig(**{"kernel_p": recon_base.kernel_p, "num_threads": recon_base.threads,
-                                         "transmittance_threshold": recon_base.transmittance_threshold,
-                                         **tracer_over})
-            result = score(capture, base_model, render_cfg, tracer_cfg, device, grid.test_views, work / f"r_{j}")
-            points.append({"name": name, "group": "render", "gaussians": len(base_model), **result})
+            result = score(capture, base_model, render_cfg, device, grid.test_views, work / f"r_{j}", tracer_over)
+            points.append({"name": name, "group": "render", "gaussians": base_count, **result})
     finally:
         if tmp:
             tmp.cleanup()
     return {"points": points, "recommended": recommend(points), "base": {
         "init": base_init, "reconstruct": base_recon, "render": base_render}, "device": device,
         "test_views": grid.test_views}
-
-
-def recommend(points: list[dict], tolerance_db: float = 0.5) -> list[dict]:
-    """Settings derived from the Pareto fronts: per group, the fastest point within ``tolerance_db`` of the
-    best final PSNR ("balanced"), the best ("quality"), and the fastest on the front ("fastest")."""
-    from stages.report.figures import pareto_front
-
-    out = []
-    for group, cost in (("training", "train_s"), ("render", "render_s_per_view")):
-        pts = [p for p in points if p["group"] == group and p.get(cost) is not None]
-        if not pts:
-            continue
-        front = pareto_front(pts, cost, "psnr_final")
-        best = max(pts, key=lambda p: p["psnr_final"])
-        balanced = next(p for p in front if p["psnr_final"] >= best["psnr_final"] - tolerance_db)
-        for role, p in (("fastest", front[0]), ("balanced", balanced), ("quality", best)):
-            out.append({"group": group, "role": role, "name": p["name"], cost: p[cost],
-                        "psnr_final": p["psnr_final"]})
-    return out
 
 
 def format_table(result: dict) -> str:
@@ -236,31 +188,6 @@ def format_table(result: dict) -> str:
     return "\n".join(rows)
 
 
-def sweep_report(result: dict, title: str) -> str:
-    """HTML: the Pareto plots (time vs PSNR per layer), the table, the recommended settings."""
-    from stages.report.figures import pareto_plot
-    from stages.report.html import esc, page, table
-
-    parts = [f"<h1>{esc(title)}</h1>", "<p class=\"note\">Each training point retrains the scene with one knob "
-             "changed from the base schedule; each render point re-renders the base model. Dashed: the Pareto "
-             "front (no other point both faster and better). Test views scored: "
-             f"{result['test_views']}; device: {esc(result['device'])}.</p>"]
-    for group, cost in (("training", "train_s"), ("render", "render_s_per_view")):
-        pts = [p for p in result["points"] if p["group"] == group]
-        if pts:
-            uri = pareto_plot(pts, cost, ["psnr_diffuse", "psnr_specular", "psnr_final"])
-            parts.append(f"<h2>{group}: {cost} vs PSNR</h2><img class=\"plot\" src=\"{uri}\" alt=\"{group} pareto\">")
-    parts.append("<h2>Points</h2>" + table(
-        ["point", "group", "train s", "render s/view", "Gaussians", "PSNR diffuse", "PSNR specular", "PSNR final"],
-        [[p["name"], p["group"], p.get("train_s"), p["render_s_per_view"], p["gaussians"], p["psnr_diffuse"],
-          p["psnr_specular"], p["psnr_final"]] for p in result["points"]], left=2))
-    parts.append("<h2>Recommended settings</h2>" + table(
-        ["group", "role", "point", "seconds", "PSNR final"],
-        [[r["group"], r["role"], r["name"], r.get("train_s", r.get("render_s_per_view")), r["psnr_final"]]
-         for r in result["recommended"]], left=3))
-    return page(title, "\n".join(parts))
-
-
 def config_for_sweep(config: dict, iterations: int | None) -> dict:
     """The scene config with the training schedule shortened to ``iterations`` (warm-up, pruning and
     checkpoints scaled by the same fraction)."""
@@ -275,4 +202,3 @@ def config_for_sweep(config: dict, iterations: int | None) -> dict:
             rec[key] = max(1, int(round(rec.get(key, default) * f)))
         rec["checkpoint_every"] = iterations
     return config
-

@@ -16,8 +16,8 @@ from stages.provenance import write_stage_json
 
 
 def _train(args: argparse.Namespace) -> int:
-    from stages.buffernet_train.config import TrainConfig
-    from stages.buffernet_train.train import train
+    from models.buffernet.training.config import TrainConfig
+    from models.buffernet.training.train import train
 
     overrides = {f.name: getattr(args, f.name) for f in fields(TrainConfig)
                  if getattr(args, f.name, None) is not None}
@@ -35,8 +35,8 @@ def _train(args: argparse.Namespace) -> int:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from models.buffernet import BufferNetPipeline
-    from stages.buffernet_train.data import make_readers
-    from stages.buffernet_train.evaluate import evaluate_network, format_rows, vae_roundtrip
+    from models.buffernet.training.data import make_readers
+    from models.buffernet.training.evaluate import evaluate_network, format_rows, vae_roundtrip
 
     try:
         if not (Path(args.model) / "model_index.json").is_file():
@@ -99,6 +99,29 @@ def _cost(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_config_flags(p: argparse.ArgumentParser) -> None:
+    """One flag per TrainConfig field not added above (--name-with-dashes; booleans --x / --no-x), its help the
+    field's doc: every option of a training run can be given on the command line (the workflow passes its
+    buffernet.train section this way)."""
+    import typing
+
+    from models.buffernet.training.config import TrainConfig
+
+    hints = typing.get_type_hints(TrainConfig)
+    for f in fields(TrainConfig):
+        if f.name in ("data", "init", "out"):
+            continue
+        flag = f"--{f.name.replace('_', '-')}"
+        doc = (f.metadata.get("doc") or "").replace("%", "%%")
+        if hints[f.name] is bool:
+            p.add_argument(flag, dest=f.name, action="store_const", const=True, help=f"{doc} (default {f.default})")
+            p.add_argument(f"--no-{f.name.replace('_', '-')}", dest=f.name, action="store_const", const=False)
+        else:
+            choices = f.metadata.get("constraints", {}).get("enum")
+            p.add_argument(flag, dest=f.name, type=hints[f.name], choices=choices,
+                           help=f"{doc} (default {f.default})")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m stages.buffernet_train", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -111,14 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--init", help="tiny | small (random weights, SD2 architecture; default small) or a local folder: "
                    "stable-diffusion-2 (diffusers layout) or a saved buffer network")
     t.add_argument("--out", help="output folder (default results/buffernet)")
-    for name, typ in (("iterations", int), ("batch_size", int), ("grad_accum", int), ("size", int), ("lr", float),
-                      ("lr_final", float), ("pixel_loss", float), ("vae_steps", int), ("vae_lr", float), ("vae_lr_final", float),
-                      ("checkpoint_every", int), ("seed", int), ("log_every", int)):
-        t.add_argument(f"--{name.replace('_', '-')}", dest=name, type=typ, help=f"see TrainConfig.{name}")
-    t.add_argument("--mixed-precision", dest="mixed_precision", choices=("no", "fp16", "bf16"))
-    t.add_argument("--gradient-checkpointing", dest="gradient_checkpointing", action="store_const", const=True,
-                   help="recompute activations in the backward pass (less memory, ~30%% slower; the default)")
-    t.add_argument("--no-gradient-checkpointing", dest="gradient_checkpointing", action="store_const", const=False)
+    _train_config_flags(t)
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints in --out")
     t.add_argument("--no-progress", action="store_true")
     e = sub.add_parser("evaluate", help="per-buffer accuracy vs trivial baselines on held-out data")

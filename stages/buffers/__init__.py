@@ -1,1 +1,1 @@
-"""buffers stage: a capture's missing buffers predicted by the buffer network (ARCHITECTURE.md)."""
+"""``buffers`` stage: a capture's missing buffers predicted by the buffer network (models/buffernet/fill.py)."""

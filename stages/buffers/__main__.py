@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     single_threaded_torch()
     from models.buffernet import BufferNetPipeline
-    from stages.buffers.predict import BuffersConfig, fill_buffers
+    from models.buffernet.fill import BuffersConfig, fill_buffers, network_path
 
     start = time.perf_counter()
     try:
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = BuffersConfig.from_dict(section)
         if not cfg.predict:
             raise ValueError("buffers.predict is empty: nothing to predict")
-        model = Path(cfg.model)
+        model = network_path(cfg.model)
         if not (model / "model_index.json").is_file():
             raise FileNotFoundError(f"buffer network {model} not found (no model_index.json): train one with "
                                     "`snakemake --cores 2 buffernet` or `python -m stages.buffernet_train train`")

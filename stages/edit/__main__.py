@@ -1,11 +1,13 @@
-"""python -m stages.edit {apply,truth,evaluate}: edit a trained scene, render its ground truth, score it.
+"""python -m stages.edit {apply,evaluate}: edit a trained scene and score it against its ground truth.
 
-  apply     model + named edit -> <out>/model/gaussians.ply, <out>/renders/test/*.exr (+ png/), <out>/stage.json
-  truth     synthetic scenes: the capture's test views rendered (Mitsuba) with the edit's ``ground_truth``
-  evaluate  edited renders vs truth, next to the unedited renders vs the capture -> metrics.json
+  apply     model folder + named edit -> <out>/model/ (gaussians.ply + model.yaml), <out>/renders/test/*.exr
+            (+ png/), <out>/stage.json
+  evaluate  edited renders vs the edited ground truth, next to the unedited renders -> metrics.json
 
-The edit comes from ``--edit NAME`` with ``--edit-json`` (its mapping, what Snakemake passes) or from the
-``edits:`` of ``--scene`` (the merged config).
+The edit comes from ``--edit NAME`` with ``--edit-json`` (its mapping, what Snakemake passes), ``--edit-file``
+(a YAML with edits:, e.g. saved by the viewer) or from the ``edits:`` of ``--scene`` (the merged config).
+The ground truth of a synthetic scene's edit is rendered by the synth stage from the edit's ground_truth list:
+``python -m stages.synth --scene demo --edits move_ball --splits test --out results/demo/edits/move_ball/truth``.
 """
 
 from __future__ import annotations
@@ -18,11 +20,10 @@ import time
 from pathlib import Path
 
 from models.capture import CaptureError, read_capture
+from models.editing import EditSpec, parse_edit
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError, load_config
 from stages.provenance import write_stage_json
-
-from .spec import EditSpec, parse_edit
 
 log = logging.getLogger("stages.edit")
 
@@ -58,11 +59,12 @@ def _load_edit(args: argparse.Namespace) -> tuple[EditSpec, dict]:
 
 
 def _apply(args: argparse.Namespace) -> int:
-    from models.gaussians import read_ply, write_ply
-    from models.tracer import Tracer, TracerConfig
-    from stages.render.render import RenderConfig
+    import dataclasses
 
-    from .edit import apply_edit, render_test_views
+    from models.editing import apply_edit
+    from models.rendering import RenderConfig, render_views
+    from models.tracer import Tracer
+    from models.trained import load_model, save_model
 
     single_threaded_torch()
     start = time.perf_counter()
@@ -70,40 +72,26 @@ def _apply(args: argparse.Namespace) -> int:
     section = load_section(args, "render")
     config = RenderConfig.from_dict(section)
     capture = read_capture(args.capture, layers=["mask"])
-    gaussians = read_ply(args.model)
+    gaussians, settings = load_model(args.model)
     edited, report = apply_edit(gaussians, spec)
-    write_ply(args.out / "model" / "gaussians.ply", edited)
-    tracer = Tracer(TracerConfig(num_threads=args.threads), device=args.device)
-    timings = render_test_views(tracer, capture, edited.to(device=args.device), config, args.out / "renders" / "test")
+    # the edited model renders like the model it was edited from (same model.yaml, plus the edit's name)
+    settings = dataclasses.replace(settings, training={**settings.training, "edit": spec.name})
+    save_model(args.out / "model", edited, settings)
+    tracer = Tracer(settings.tracer_config(args.threads), device=args.device)
+    tracer.update(edited, rebuild=True)
+    views = capture.split("test") or capture.split("train")
+    timings = render_views(tracer, views, edited, config, settings.path, args.out / "renders" / "test",
+                           desc="render edit")
     write_stage_json(args.out, "edit", {"edit": raw, "render": section}, time.perf_counter() - start,
                      device=args.device, extra={"edit": spec.name, "ops": report, "render_spp": config.spp,
-                                                "seconds_per_view": timings})
+                                                "seconds_per_view": timings, "model": settings.to_dict()})
     print(json.dumps({"edit": spec.name, "ops": [{k: r[k] for k in ("op", "selected", "gaussians_after")}
                                                   for r in report]}))
     return 0
 
 
-def _truth(args: argparse.Namespace) -> int:
-    from .truth import render_truth
-
-    start = time.perf_counter()
-    spec, raw = _load_edit(args)
-    if args.synth_json:
-        synth = json.loads(args.synth_json)
-    elif args.scene:
-        synth = load_config(args.scene, presets=args.preset).get("synth")
-    else:
-        raise ValueError("give --synth-json or --scene (the synth: section to re-render)")
-    if not synth:
-        raise ValueError(f"edit {spec.name!r}: no synth: section, a ground truth needs a synthetic scene")
-    capture = render_truth(synth, spec, args.out)
-    write_stage_json(args.out, "edit_truth", {"synth": synth, "ground_truth": list(spec.ground_truth or [])},
-                     time.perf_counter() - start, extra={"edit": spec.name, "views": len(capture.views)})
-    return 0
-
-
 def _evaluate(args: argparse.Namespace) -> int:
-    from .edit import evaluate_edit
+    from models.metrics import evaluate_edit
 
     layers = ["diffuse", "specular", "depth", "mask"]
     capture = read_capture(args.capture, layers=layers)
@@ -133,29 +121,24 @@ def main(argv: list[str] | None = None) -> int:
     a = sub.add_parser("apply", help="apply an edit to a model and render the capture's test views")
     _edit_args(a)
     add_config_args(a, "render")
-    a.add_argument("--model", required=True, type=Path, help="trained gaussians.ply")
+    a.add_argument("--model", required=True, type=Path, help="trained model folder (gaussians.ply + model.yaml); "
+                   "a gaussians.ply path means its folder")
     a.add_argument("--capture", required=True, type=Path, help="capture (its test cameras are rendered)")
     a.add_argument("--out", required=True, type=Path, help="output folder (edits/<name>/)")
     a.add_argument("--device", default="cpu", help="cpu | cuda")
     a.add_argument("--threads", type=int, default=2, help="CPU tracer threads")
-    t = sub.add_parser("truth", help="render the capture's test views of the synthetic scene with the edit's "
-                       "ground_truth applied (Mitsuba)")
-    _edit_args(t)
-    t.add_argument("--scene", help="read the edit and the synth: section from this scene's merged config")
-    t.add_argument("--preset", action="append", default=[], help="extra preset(s) applied with --scene")
-    t.add_argument("--synth-json", help="the synth: section as JSON (what Snakemake passes)")
-    t.add_argument("--out", required=True, type=Path, help="output capture folder")
     e = sub.add_parser("evaluate", help="edited renders vs ground truth, next to the unedited renders")
     e.add_argument("--edit", required=True, help="the edit's name (recorded in the metrics)")
     e.add_argument("--capture", required=True, type=Path, help="the unedited capture (test split)")
-    e.add_argument("--truth", required=True, type=Path, help="the edited ground-truth capture ('truth' output)")
+    e.add_argument("--truth", required=True, type=Path, help="the edited ground-truth capture (python -m stages.synth "
+                   "... --edits NAME --splits test)")
     e.add_argument("--renders", required=True, type=Path, help="the edited renders (<edit>/renders/test)")
     e.add_argument("--baseline-renders", required=True, type=Path, help="the unedited renders (renders/test)")
     e.add_argument("--out", required=True, type=Path, help="metrics.json path")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
-        return {"apply": _apply, "truth": _truth, "evaluate": _evaluate}[args.command](args)
+        return {"apply": _apply, "evaluate": _evaluate}[args.command](args)
     except (CaptureError, ConfigError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -8,8 +8,10 @@ import sys
 from pathlib import Path
 
 from models.capture import CaptureError, read_capture
+from models.metrics import evaluate_renders
+from models.rendering import measure_fps
+from models.trained import GAUSSIANS_FILE, read_settings
 from stages.cli import single_threaded_torch
-from stages.evaluate.evaluate import evaluate_renders, measure_fps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -22,7 +24,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--capture", required=True, type=Path)
     p.add_argument("--renders", required=True, type=Path, help="render stage output folder")
-    p.add_argument("--model", type=Path, help="reconstruct output folder (for training time)")
+    p.add_argument("--model", type=Path, help="model folder (reconstruct output: training time, and the FPS "
+                   "measurement renders it with its own settings, model.yaml)")
     p.add_argument("--out", required=True, type=Path, help="metrics.json path")
     p.add_argument("--fps-repeats", type=int, default=3,
                    help="timed frames for render FPS at 1 spp (needs --model; 0 = skip)")
@@ -52,10 +55,12 @@ def main(argv: list[str] | None = None) -> int:
     render_stage = {}
     if (args.renders / "stage.json").is_file():
         render_stage = json.loads((args.renders / "stage.json").read_text())
-    if args.model and (args.model / "gaussians.ply").is_file() and args.fps_repeats > 0:
-        length = render_stage.get("config", {}).get("max_path_length", 3)
-        metrics.update(measure_fps(args.model / "gaussians.ply", capture.split("test")[0].camera, length,
-                                   args.device, args.threads, args.fps_repeats))
+    if args.model and (args.model / GAUSSIANS_FILE).is_file():
+        metrics["model"] = read_settings(args.model).to_dict()
+        if args.fps_repeats > 0:  # at the render stage's path length (its override, else the model's)
+            length = render_stage.get("path", {}).get("max_path_length")
+            metrics.update(measure_fps(args.model, capture.split("test")[0].camera, length, args.device,
+                                       args.threads, args.fps_repeats))
     if render_stage:
         metrics["render_seconds_per_view"] = render_stage.get("seconds_per_view", {})
         metrics["render_spp"] = render_stage.get("config", {}).get("spp")

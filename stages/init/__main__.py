@@ -10,10 +10,9 @@ from pathlib import Path
 
 from models.capture import CaptureError, read_capture
 from models.gaussians import write_ply
+from models.initialisation import InitConfig, initialise
 from stages.cli import add_config_args, load_section
 from stages.config import ConfigError
-from stages.init.dense import InitConfig
-from stages.init.sfm import initialise
 from stages.provenance import write_stage_json
 
 log = logging.getLogger("stages.init")

@@ -9,9 +9,9 @@ import time
 from pathlib import Path
 
 from models.capture import CaptureError
+from models.poses.config import PosesConfig
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
-from stages.poses.config import PosesConfig
 from stages.provenance import write_stage_json
 
 log = logging.getLogger("stages.poses")
@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     single_threaded_torch()
-    from stages.poses.pipeline import run_poses
+    from models.poses import run_poses
 
     start = time.perf_counter()
     try:

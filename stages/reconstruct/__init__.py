@@ -1,6 +1,1 @@
-"""``reconstruct`` stage: optimise one Gaussian scene with path-traced reflections."""
-
-from .config import ReconstructConfig
-from .trainer import Trainer, train
-
-__all__ = ["ReconstructConfig", "Trainer", "train"]
+"""``reconstruct`` stage: one Gaussian scene with path-traced reflections (models/reconstruction) -> model/."""

@@ -10,27 +10,23 @@ import time
 from pathlib import Path
 
 from models.capture import CaptureError, read_capture
-from models.gaussians import read_ply, write_ply
-from models.tracer import Tracer, TracerConfig
+from models.gaussians import read_ply
+from models.reconstruction import ReconstructConfig, Trainer, train
+from models.tracer import Tracer
+from models.trained import save_model
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
 from stages.provenance import write_stage_json
-from stages.reconstruct.config import ReconstructConfig
-from stages.reconstruct.trainer import Trainer, train
 
 log = logging.getLogger("stages.reconstruct")
-
-
-def make_tracer(config: ReconstructConfig, device: str) -> Tracer:
-    return Tracer(TracerConfig(kernel_p=config.kernel_p, transmittance_threshold=config.transmittance_threshold,
-                               num_threads=config.threads), device=device)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m stages.reconstruct",
         description="Optimise ONE Gaussian scene: diffuse + G-buffer losses on primary rays, path-traced specular "
-        "after warm-up (paper Eq. 4-7). Writes <out>/gaussians.ply, <out>/checkpoints/last.pt (exact resume), "
+        "after warm-up (paper Eq. 4-7). Writes the model folder <out>/ (gaussians.ply + model.yaml: the tracer and "
+        "path settings every consumer renders it with), <out>/checkpoints/last.pt (exact resume), "
         "<out>/train_log.jsonl (metrics, JSON lines) and <out>/stage.json.",
     )
     add_config_args(p, "reconstruct")
@@ -48,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         config = ReconstructConfig.from_dict(section)
         capture = read_capture(args.capture)
         init = read_ply(args.init)
-        trainer = Trainer(capture, init, config, make_tracer(config, args.device))
+        trainer = Trainer(capture, init, config, Tracer(config.tracer, device=args.device))
     except (CaptureError, ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -60,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / "train_log.jsonl").unlink()
     start = time.perf_counter()
     metrics = train(trainer, args.out, progress=not args.no_progress)
-    write_ply(args.out / "gaussians.ply", trainer.gaussians())
+    save_model(args.out, trainer.gaussians(), trainer.settings())
     log.info("final: %s", json.dumps(metrics))
     write_stage_json(args.out, "reconstruct", section, time.perf_counter() - start, device=args.device,
                      extra={"decisions": trainer.decisions, "final": metrics})

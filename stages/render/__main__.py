@@ -12,12 +12,12 @@ import torch
 from tqdm import tqdm
 
 from models.capture import CaptureError, read_capture
-from models.gaussians import read_ply
-from models.tracer import Tracer, TracerConfig
+from models.rendering import RenderConfig, camera_path, render_view, render_views, write_layers
+from models.tracer import Tracer
+from models.trained import load_model
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
 from stages.provenance import write_stage_json
-from stages.render.render import RenderConfig, camera_path, render_view, write_layers
 
 log = logging.getLogger("stages.render")
 
@@ -30,7 +30,8 @@ def main(argv: list[str] | None = None) -> int:
         "the capture's test views and <out>/path/ for a novel camera path (+ video when possible).",
     )
     add_config_args(p, "render")
-    p.add_argument("--model", required=True, type=Path, help="trained gaussians.ply")
+    p.add_argument("--model", required=True, type=Path, help="trained model folder (gaussians.ply + model.yaml: "
+                   "the tracer / path settings it was trained with); a gaussians.ply path means its folder")
     p.add_argument("--capture", required=True, type=Path, help="capture (its test cameras are rendered)")
     p.add_argument("--out", required=True, type=Path, help="output folder (renders/)")
     p.add_argument("--device", default="cpu", help="cpu | cuda")
@@ -42,30 +43,31 @@ def main(argv: list[str] | None = None) -> int:
         section = load_section(args, "render")
         config = RenderConfig.from_dict(section)
         capture = read_capture(args.capture, layers=["mask"])
-        gaussians = read_ply(args.model)
-    except (CaptureError, ConfigError, ValueError) as e:
+        gaussians, settings = load_model(args.model)
+    except (CaptureError, ConfigError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    tracer = Tracer(TracerConfig(num_threads=args.threads), device=args.device)
+    path = config.path(settings.path)
+    tracer = Tracer(settings.tracer_config(args.threads), device=args.device)
     tracer.update(gaussians)
+    log.info("rendering with the model's settings (%s): kernel_p %d, max path length %d, sampler %s",
+             settings.source, tracer.config.kernel_p, path.max_path_length, path.sampler)
     generator = torch.Generator().manual_seed(config.seed)
     start = time.perf_counter()
     test_views = capture.split("test") or capture.split("train")
-    timings = {}
-    for view in tqdm(test_views, desc="render test", unit="view"):
-        t0 = time.perf_counter()
-        img = render_view(tracer.trace, view.camera, gaussians, config, generator)
-        timings[view.name] = round(time.perf_counter() - t0, 3)
-        write_layers(args.out / "test", view.name, img)
+    timings = render_views(tracer, test_views, gaussians, config, settings.path, args.out / "test", generator,
+                           desc="render test")
     frames = []
     for i, cam in enumerate(tqdm(camera_path([v.camera for v in test_views], config.path_views),
                                  desc="render path", unit="view")):
-        img = render_view(tracer.trace, cam, gaussians, config, generator)
+        img = render_view(tracer.trace, cam, gaussians, config, generator, settings.path)
         write_layers(args.out / "path", f"path_{i:03d}", img)
         frames.append(args.out / "path" / "png" / f"path_{i:03d}_final.png")
     video = _video(frames, args.out / "path") if config.video and frames else None
     write_stage_json(args.out, "render", section, time.perf_counter() - start, device=args.device,
-                     extra={"seconds_per_view": timings, "video": str(video) if video else None})
+                     extra={"seconds_per_view": timings, "video": str(video) if video else None,
+                            "model": settings.to_dict(), "path": {"max_path_length": path.max_path_length,
+                                                                  "sampler": path.sampler}})
     return 0
 
 

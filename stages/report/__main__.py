@@ -12,6 +12,7 @@ from stages.config import ConfigError, load_config
 
 from .batch import batch_report
 from .scene import scene_report
+from .sweep import sweep_report
 
 
 def _write(path: Path, text: str) -> None:
@@ -28,7 +29,9 @@ def main(argv: list[str] | None = None) -> int:
         "  scene: ground truth vs ours per layer with error maps, metrics, cost, training curves, what the scene "
         "required and what was switched off, the novel camera path and the edits.\n"
         "  batch: the scenes side by side like the paper's Tables 1 (PSNR diffuse / specular / final) and 2 "
-        "(training time), with links to each scene's report.",
+        "(training time), with links to each scene's report.\n"
+        "  sweep: the speed / accuracy sweep (python -m stages.benchmark sweep): Pareto plots, table, recommended "
+        "settings.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = p.add_subparsers(dest="command", required=True)
@@ -41,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("results", type=Path, nargs="+", help="results/<scene> folders")
     b.add_argument("--out", type=Path, required=True, help="HTML path")
     b.add_argument("--title", default="batch report")
+    w = sub.add_parser("sweep", help="the speed / accuracy sweep's sweep.json as HTML")
+    w.add_argument("sweep", type=Path, help="sweep.json written by python -m stages.benchmark sweep")
+    w.add_argument("--out", type=Path, help="HTML path (default: report.html beside sweep.json)")
     args = p.parse_args(argv)
     try:
         if args.command == "scene":
@@ -55,6 +61,12 @@ def main(argv: list[str] | None = None) -> int:
                     config = {"scene": args.results.name}
             out = args.out or args.results / "report.html"
             _write(out, scene_report(args.results, config))
+        elif args.command == "sweep":
+            if not args.sweep.is_file():
+                raise FileNotFoundError(f"{args.sweep} does not exist (run python -m stages.benchmark sweep first)")
+            result = json.loads(args.sweep.read_text())
+            out = args.out or args.sweep.with_name("report.html")
+            _write(out, sweep_report(result, f"speed/accuracy sweep: {result.get('scene', args.sweep.parent.name)}"))
         else:
             missing = [str(d) for d in args.results if not (d / "metrics.json").is_file()]
             if missing:

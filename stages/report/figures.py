@@ -11,7 +11,8 @@ import io
 
 import numpy as np
 
-from stages.render.render import to_png
+from models.metrics.pareto import pareto_front
+from models.rendering.images import to_png
 
 
 def png_uri(image: np.ndarray) -> str:
@@ -104,12 +105,3 @@ def pareto_plot(points: list[dict], x: str, ys: list[str], label: str = "name") 
         if len(groups) > 1:
             ax.legend(fontsize=7)
     return _figure_uri(fig)
-
-
-def pareto_front(points: list[dict], x: str, y: str) -> list[dict]:
-    """Points not dominated by another (lower-or-equal ``x`` and higher-or-equal ``y``, one strictly), by ``x``."""
-    front = []
-    for p in sorted(points, key=lambda p: (p[x], -p[y])):
-        if not front or p[y] > front[-1][y]:
-            front.append(p)
-    return front

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from models.capture import read_capture, read_view_buffers
+from models.capture.layers import GBUFFER as GBUFFER_LAYERS
+from models.capture.layers import SCORED as COLOUR_LAYERS
 
 from .figures import error_map, layer_uri, png_uri, training_curves
 from .html import esc, figure, fmt, hms, page, table
 
-COLOUR_LAYERS = ("final", "diffuse", "specular")
-GBUFFER_LAYERS = ("normal", "depth", "roughness", "f0")
 # error-map scale per layer (mean absolute error shown as full-bright)
 ERROR_SCALE = {"final": 0.25, "diffuse": 0.25, "specular": 0.25, "normal": 0.5, "roughness": 0.25, "f0": 0.25}
 

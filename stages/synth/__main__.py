@@ -1,6 +1,8 @@
-"""CLI: ``python -m stages.synth (--scene NAME | --config-json JSON) [--edits NAME...] --out DIR``, and
-``python -m stages.synth procedural --count N --seed S --out DIR [--resolution W H] [--views V] [--spp P]
-[--no-denoise]`` (random training rooms, ``procedural.py``)."""
+"""CLI: ``python -m stages.synth (--scene NAME | --config-json JSON) [--edits NAME...] [--splits test] --out DIR``
+(a synthetic capture; with ``--edits``, the ground truth of named edits: the scene re-rendered with their
+``ground_truth`` ops), and ``python -m stages.synth procedural --count N --seed S --out DIR [--resolution W H]
+[--views V] [--spp P] [--no-denoise]`` (random training rooms, ``procedural.py``). The renderer is
+``models/synth``."""
 
 from __future__ import annotations
 
@@ -9,22 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-import yaml
-
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _load_scene_config(scene: str) -> dict:
-    try:
-        from stages.config import load_config
-    except ImportError:
-        load_config = None
-    if load_config is not None:
-        return load_config(scene)
-    path = ROOT / "configs" / "scenes" / f"{scene}.yaml"
-    if not path.is_file():
-        raise ValueError(f"unknown scene {scene!r}: {path} does not exist")
-    return yaml.safe_load(path.read_text()) or {}
+from stages.config import load_config
 
 
 def procedural_main(argv: list[str]) -> int:
@@ -42,7 +29,7 @@ def procedural_main(argv: list[str]) -> int:
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = p.parse_args(argv)
 
-    from .procedural import render_procedural
+    from stages.synth.procedural import render_procedural
 
     try:
         report = render_procedural(args.out, args.count, args.seed, resolution=tuple(args.resolution),
@@ -64,24 +51,29 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m stages.synth", description=__doc__)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scene", help="scene name: loads configs/scenes/NAME.yaml (merged config)")
+    p.add_argument("--preset", action="append", default=[], help="extra preset(s) applied with --scene")
     src.add_argument("--config-json", help="the synth: section as JSON (as Snakemake passes it)")
     p.add_argument("--edits", nargs="*", default=[], metavar="NAME",
                    help="named edits of the scene config's 'edits:' mapping (their ground_truth lists), applied in order "
                    "(needs --scene)")
     p.add_argument("--edits-json", help="an edit list as JSON (works with --config-json too)")
+    p.add_argument("--splits", nargs="+", choices=("train", "test"), help="render only these splits (default: "
+                   "all); each view keeps the sampler seed it has in the full capture, so the pixels an edit does "
+                   "not reach are the capture's own, noise included")
+    p.add_argument("--name", help="name recorded in capture.yaml (default: the scene; 'edit:<names>' with --edits)")
     p.add_argument("--out", required=True, type=Path, help="capture output directory")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = p.parse_args(argv)
 
     import time
 
-    from .render import render_capture
+    from models.synth import render_capture
 
     t0 = time.perf_counter()
     try:
         edits: list = []
         if args.scene:
-            config = _load_scene_config(args.scene)
+            config = load_config(args.scene, presets=args.preset)
             if "synth" not in config:
                 raise ValueError(f"scene {args.scene!r}: config has no 'synth:' section (not a synthetic scene?)")
             synth_cfg, name = config["synth"], args.scene
@@ -89,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             for e in args.edits:
                 if e not in named:
                     raise ValueError(f"scene {args.scene!r}: unknown edit list {e!r} (known: {', '.join(named) or 'none'})")
-                # a named edit of the edit stage (stages/edit/spec.py): its synth side is 'ground_truth'
+                # a named edit (models/editing/spec.py): its synth side is 'ground_truth'
                 gt = named[e].get("ground_truth") if isinstance(named[e], dict) else named[e]
                 if not gt:
                     raise ValueError(f"scene {args.scene!r}: edit {e!r} has no ground_truth (synth edit list)")
@@ -107,8 +99,10 @@ def main(argv: list[str] | None = None) -> int:
                 edits += json.loads(args.edits_json)
             except json.JSONDecodeError as e:
                 raise ValueError(f"--edits-json: invalid JSON ({e})") from None
+        if args.edits and args.name is None:
+            name = f"edit:{','.join(args.edits)}"
         capture = render_capture(synth_cfg, args.out, edits=edits or None, progress=not args.no_progress,
-                                 scene_name=name)
+                                 scene_name=args.name or name, splits=tuple(args.splits) if args.splits else None)
     except ValueError as e:  # includes ConfigError and CaptureError subclasses of ValueError
         print(f"error: {e}", file=sys.stderr)
         return 2

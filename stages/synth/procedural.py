@@ -1,220 +1,18 @@
-"""Random synthetic rooms as training data for the buffer network.
-
-``random_scene_config(seed)`` builds a valid ``synth:`` section (``spec.py``): a closed room (floor,
-ceiling, four walls with random textures and colours), 1-2 area lights on the ceiling, 2-6 objects
-(spheres and cubes on the floor, rectangles hung on the walls) with random transforms and materials that
-span the buffers (textured / plain diffuse; principled with roughness 0.05..1, metallic 0 or 1 and random
-base colours; smooth and rough conductors), and an orbit of cameras inside the room looking at its middle.
-Every scene has at least one metallic object and one dielectric one. The same seed gives the same config.
-
-``render_procedural(out_dir, count, seed)`` renders scenes ``seed, seed + 1, ...`` into
-``out_dir/scene_0000, scene_0001, ...`` (each a capture folder, with ``stage.json``); scenes whose
-folder already holds a capture of the same config are skipped, so an interrupted run resumes.
-"""
+"""``python -m stages.synth procedural``: render random rooms (``models/synth/procedural.py``) into
+``out_dir/scene_0000, scene_0001, ...`` (each a capture folder, with ``stage.json``); scenes whose folder already
+holds a capture of the same config are skipped, so an interrupted run resumes."""
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
-# Complex IOR (eta, k) at R, G, B of common metals.
-METALS = {
-    "gold": ((0.143, 0.374, 1.442), (3.983, 2.386, 1.603)),
-    "copper": ((0.200, 0.924, 1.102), (3.912, 2.452, 2.142)),
-    "silver": ((0.155, 0.117, 0.138), (4.828, 3.122, 2.147)),
-    "aluminium": ((1.657, 0.880, 0.521), (9.224, 6.270, 4.837)),
-}
-OBJECT_MATERIALS = ("diffuse_textured", "diffuse", "principled", "principled_metal", "conductor")
-OBJECT_WEIGHTS = (0.2, 0.1, 0.3, 0.2, 0.2)
-MAX_OBJECT_TOP = 1.0  # highest point of a floor object (m); cameras stay above it
-MIN_CAMERA_HEIGHT = 1.25
-
-
-def _r(x: float) -> float:
-    return round(float(x), 4)
-
-
-def _rgb(values) -> list[float]:
-    return [_r(v) for v in values]
-
-
-class _Builder:
-    """Accumulates the textures and objects of one random scene."""
-
-    def __init__(self, rng: np.random.Generator):
-        self.rng = rng
-        self.textures: dict[str, dict] = {}
-        self.objects: list[dict] = []
-
-    def colour(self, lo: float = 0.05, hi: float = 0.9) -> list[float]:
-        return _rgb(self.rng.uniform(lo, hi, 3))
-
-    def texture(self) -> str:
-        rng = self.rng
-        name = f"tex_{len(self.textures)}"
-        kind = str(rng.choice(["checker", "noise"]))
-        tex = {"type": kind, "size": 128, "seed": int(rng.integers(0, 2**31 - 1)),
-               "colors": [self.colour() for _ in range(int(rng.integers(2, 4)))]}
-        if kind == "checker":
-            tex["scale"] = int(rng.integers(3, 13))
-        else:
-            tex.update(scale=_r(rng.uniform(3, 12)), octaves=int(rng.integers(3, 6)))
-        self.textures[name] = tex
-        return name
-
-    def material(self, kind: str) -> dict:
-        rng = self.rng
-        if kind == "diffuse_textured":
-            return {"type": "diffuse", "texture": self.texture()}
-        if kind == "diffuse":
-            return {"type": "diffuse", "base_color": self.colour()}
-        if kind == "principled":
-            m = {"type": "principled", "roughness": _r(rng.uniform(0.05, 1.0)), "metallic": 0.0,
-                 "specular": _r(rng.uniform(0.2, 1.0))}
-            if rng.random() < 0.4:
-                m["texture"] = self.texture()
-            else:
-                m["base_color"] = self.colour()
-            return m
-        if kind == "principled_metal":
-            return {"type": "principled", "base_color": self.colour(0.4, 1.0), "roughness": _r(rng.uniform(0.05, 0.8)),
-                    "metallic": 1.0, "specular": 0.5}
-        if kind == "conductor":
-            m = {"type": "conductor", "roughness": 0.0 if rng.random() < 0.5 else _r(rng.uniform(0.05, 0.5))}
-            if rng.random() < 0.3:  # tinted perfect mirror
-                m["specular_reflectance"] = self.colour(0.6, 1.0)
-            else:
-                eta, k = METALS[str(rng.choice(list(METALS)))]
-                m.update(eta=list(eta), k=list(k))
-            return m
-        raise ValueError(f"unknown material kind {kind!r}")
-
-    def add(self, name: str, shape: str, material: dict, transform: dict, emitter: list | None = None) -> None:
-        obj = {"name": name, "shape": shape, "material": material, "transform": transform}
-        if emitter is not None:
-            obj["emitter"] = {"radiance": emitter}
-        self.objects.append(obj)
-
-
-def _room(b: _Builder, hx: float, hz: float, height: float) -> None:
-    rng = b.rng
-    floor = (b.material("principled") if rng.random() < 0.7 else b.material("diffuse_textured"))
-    floor.pop("base_color", None)
-    floor.setdefault("texture", b.texture())
-    if floor["type"] == "principled":
-        floor["roughness"] = _r(rng.uniform(0.05, 0.8))
-    b.add("floor", "rectangle", floor, {"rotate": [{"axis": [1, 0, 0], "angle": -90}], "scale": [_r(hx), _r(hz), 1]})
-    b.add("ceiling", "rectangle", {"type": "diffuse", "base_color": b.colour(0.6, 0.9)},
-          {"translate": [0, _r(height), 0], "rotate": [{"axis": [1, 0, 0], "angle": 90}], "scale": [_r(hx), _r(hz), 1]})
-    walls = {  # name: (translate, rotation about y, half width)
-        "wall_back": ([0, height / 2, -hz], 0, hx), "wall_front": ([0, height / 2, hz], 180, hx),
-        "wall_left": ([-hx, height / 2, 0], 90, hz), "wall_right": ([hx, height / 2, 0], -90, hz),
-    }
-    for name, (pos, angle, half) in walls.items():
-        m = b.material("diffuse_textured") if rng.random() < 0.8 else b.material("principled")
-        if m["type"] == "principled":
-            m["roughness"] = _r(rng.uniform(0.4, 1.0))
-        b.add(name, "rectangle", m, {"translate": _rgb(pos), "rotate": [{"axis": [0, 1, 0], "angle": angle}],
-                                     "scale": [_r(half), _r(height / 2), 1]})
-
-
-def _lights(b: _Builder, hx: float, hz: float, height: float) -> None:
-    rng = b.rng
-    for i in range(int(rng.integers(1, 3))):
-        sx, sz = rng.uniform(0.2, 0.6, 2)
-        x = rng.uniform(-(hx - sx - 0.2), hx - sx - 0.2)
-        z = rng.uniform(-(hz - sz - 0.2), hz - sz - 0.2)
-        power = rng.uniform(6.0, 20.0)  # radiance x area (the demo room's light: 10)
-        tint = np.array([1.0, rng.uniform(0.8, 1.0), rng.uniform(0.6, 1.0)])
-        if rng.random() < 0.3:
-            tint = tint[::-1]  # cool white
-        radiance = power / (4 * sx * sz) * tint / tint.max()
-        b.add(f"light_{i}", "rectangle", {"type": "diffuse", "base_color": [0.0, 0.0, 0.0]},
-              {"translate": [_r(x), _r(height - 0.005), _r(z)], "rotate": [{"axis": [1, 0, 0], "angle": 90}],
-               "scale": [_r(sx), _r(sz), 1]}, emitter=_rgb(radiance))
-
-
-def _objects(b: _Builder, hx: float, hz: float, height: float) -> None:
-    rng = b.rng
-    n = int(rng.integers(2, 7))
-    kinds = [str(rng.choice(["principled_metal", "conductor"])), str(rng.choice(["principled", "diffuse_textured"]))]
-    kinds += [str(k) for k in rng.choice(OBJECT_MATERIALS, n - 2, p=OBJECT_WEIGHTS)]
-    placed: list[tuple[float, float, float]] = []  # floor footprints (x, z, radius)
-    free_walls = ["wall_back", "wall_front", "wall_left", "wall_right"]
-    for i, kind in enumerate(kinds):
-        shape = str(rng.choice(["sphere", "cube", "rectangle"], p=[0.35, 0.4, 0.25]))
-        if shape == "rectangle" and not free_walls:
-            shape = "cube"
-        material = b.material(kind)
-        name = f"{shape}_{i}"
-        if shape == "rectangle":  # a panel (mirror, poster, metal plate) hung on a wall, facing the room
-            wall = free_walls.pop(int(rng.integers(len(free_walls))))
-            w, h = rng.uniform(0.25, 0.7), rng.uniform(0.25, 0.6)
-            half = hx if wall in ("wall_back", "wall_front") else hz
-            along = rng.uniform(-(half - w - 0.1), half - w - 0.1)
-            y = rng.uniform(h + 0.3, height - h - 0.2)
-            pos, angle = {"wall_back": ([along, y, -hz + 0.01], 0), "wall_front": ([along, y, hz - 0.01], 180),
-                          "wall_left": ([-hx + 0.01, y, along], 90), "wall_right": ([hx - 0.01, y, along], -90)}[wall]
-            b.add(name, "rectangle", material, {"translate": _rgb(pos), "rotate": [{"axis": [0, 1, 0], "angle": angle}],
-                                                "scale": [_r(w), _r(h), 1]})
-            continue
-        for _ in range(100):  # a free spot on the floor
-            if shape == "sphere":
-                r = rng.uniform(0.15, MAX_OBJECT_TOP / 2)
-                size, footprint = [r, r, r], r
-            else:
-                size = [rng.uniform(0.15, 0.45), rng.uniform(0.15, MAX_OBJECT_TOP / 2), rng.uniform(0.15, 0.45)]
-                footprint = math.hypot(size[0], size[2])
-            x = rng.uniform(-(hx - footprint - 0.1), hx - footprint - 0.1)
-            z = rng.uniform(-(hz - footprint - 0.1), hz - footprint - 0.1)
-            if all(math.hypot(x - px, z - pz) > footprint + pr + 0.05 for px, pz, pr in placed):
-                break
-        else:
-            continue  # the floor is full: drop this object
-        placed.append((x, z, footprint))
-        tr = {"translate": _rgb([x, size[1], z]), "scale": _rgb(size)}
-        if shape == "cube":
-            tr["rotate"] = [{"axis": [0, 1, 0], "angle": _r(rng.uniform(0, 90))}]
-        b.add(name, shape, material, tr)
-
-
-def random_scene_config(seed: int, resolution: tuple[int, int] = (64, 64), views: int = 8, spp: int = 64,
-                        denoise: bool = True) -> dict:
-    """A random room as a ``synth:`` config section (plain dict, YAML / JSON friendly). ``resolution`` is
-    (W, H); all ``views`` cameras are in the train split (no test views). Deterministic per ``seed``.
-    ``denoise``: OIDN on the rendered layers (``render.denoise_view``), so that the buffers a network learns
-    hold no Monte Carlo noise (caustic fireflies in the diffuse layer, which no predictor can reproduce)."""
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    if views < 1 or spp < 1:
-        raise ValueError(f"views and spp must be >= 1, got views={views}, spp={spp}")
-    rng = np.random.default_rng(seed)
-    hx, hz = rng.uniform(1.6, 3.0, 2)
-    height = rng.uniform(2.3, 3.2)
-    b = _Builder(rng)
-    _room(b, hx, hz, height)
-    _lights(b, hx, hz, height)
-    _objects(b, hx, hz, height)
-    radius = rng.uniform(0.5, 1.0) * (min(hx, hz) - 0.6)
-    heights = sorted(rng.uniform(MIN_CAMERA_HEIGHT, min(2.0, height - 0.3), 2))
-    start = rng.uniform(0, 360)
-    target = [rng.uniform(-0.3, 0.3), rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3)]
-    train = {"type": "orbit", "count": int(views), "fov_y": _r(rng.uniform(50, 75)), "target": _rgb(target),
-             "radius": _r(radius), "height": _rgb(heights), "azimuth": [_r(start), _r(start + 360)]}
-    return {
-        "seed": int(seed),
-        "resolution": [int(resolution[0]), int(resolution[1])],
-        "spp": int(spp),
-        "max_depth": 4,
-        "denoise": bool(denoise),
-        "textures": b.textures,
-        "objects": b.objects,
-        "cameras": {"train": train, "test": {"type": "orbit", "count": 0}},
-    }
+from models.settings import config_hash
+from models.synth import render_capture
+from models.synth.procedural import random_scene_config
+from stages.provenance import write_stage_json
 
 
 def scene_dir(out_dir: str | Path, index: int) -> Path:
@@ -224,8 +22,6 @@ def scene_dir(out_dir: str | Path, index: int) -> Path:
 def is_complete(folder: Path, config: dict) -> bool:
     """Whether ``folder`` holds a finished capture rendered from ``config`` (its stage.json's hash)."""
     import json
-
-    from stages.config import config_hash
 
     stage = folder / "stage.json"
     if not (folder / "transforms.json").is_file() or not stage.is_file():
@@ -240,10 +36,6 @@ def render_procedural(out_dir: str | Path, count: int, seed: int = 0, *, resolut
                       views: int = 8, spp: int = 64, denoise: bool = True, progress: bool = True) -> dict:
     """Render ``count`` random rooms (seeds ``seed .. seed + count - 1``) into ``out_dir/scene_NNNN``,
     skipping complete ones. Returns {"rendered": [...], "skipped": [...], "seconds": {name: s}}."""
-    from stages.provenance import write_stage_json
-
-    from .render import render_capture
-
     if count < 0:
         raise ValueError(f"count must be >= 0, got {count}")
     out_dir = Path(out_dir)

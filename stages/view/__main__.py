@@ -41,8 +41,8 @@ def _resolution(text: str) -> tuple[int, int]:
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m stages.view", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("source", type=Path, help="a results folder (results/<scene>: model/gaussians.ply, capture/) "
-                   "or a gaussians.ply")
+    p.add_argument("source", type=Path, help="a results folder (results/<scene>: model/, capture/), a model folder "
+                   "(gaussians.ply + model.yaml) or a gaussians.ply")
     p.add_argument("--scene", help="scene config whose edits: give the named selections (default: the results "
                    "folder's name when configs/scenes/<name>.yaml exists)")
     p.add_argument("--preset", action="append", default=[], help="extra preset(s) applied with --scene")
@@ -55,7 +55,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    "with about this many pixels (default 160x120, for a 2-core CPU)")
     p.add_argument("--device", default="cpu", help="cpu | cuda")
     p.add_argument("--threads", type=int, default=2, help="CPU tracer threads")
-    p.add_argument("--max-path-length", type=int, default=3, help="path segments (1 = no reflections; paper: 3)")
+    p.add_argument("--max-path-length", type=int, help="path segments (1 = no reflections; default: the model's, "
+                   "model.yaml)")
     p.add_argument("--max-spp", type=int, default=64, help="accumulation stops at this many samples")
     p.add_argument("--denoise-after", type=int, default=4, help="denoise from this many samples on (0 = never)")
     p.add_argument("--seed", type=int, default=0, help="seed of every accumulation (equal seed + spp = equal image)")
@@ -74,7 +75,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def _resolve(args) -> tuple[Path, Path | None, str | None, Path]:
     src = args.source
-    if src.is_dir():
+    if src.is_dir() and not (src / "gaussians.ply").is_file():  # a results folder
         model = src / "model" / "gaussians.ply"
         capture = args.capture or (src / "capture" if (src / "capture").is_dir() else None)
         save_dir = args.save_dir or src / "edits" / "viewer"
@@ -84,9 +85,11 @@ def _resolve(args) -> tuple[Path, Path | None, str | None, Path]:
 
             scene = src.name if src.name in known("scenes") else None
     else:
-        model, capture, scene, save_dir = src, args.capture, args.scene, args.save_dir or Path.cwd()
+        model = src / "gaussians.ply" if src.is_dir() else src  # a model folder, or a gaussians.ply
+        capture, scene, save_dir = args.capture, args.scene, args.save_dir or Path.cwd()
     if not model.is_file():
-        raise FileNotFoundError(f"no model at {model} (give a results folder with model/gaussians.ply or a .ply)")
+        raise FileNotFoundError(f"no model at {model} (give a results folder with model/gaussians.ply, a model "
+                                "folder or a .ply)")
     return model, capture, scene, save_dir
 
 
@@ -111,31 +114,40 @@ def _start_camera(capture: Path | None, gaussians, resolution: tuple[int, int]):
     return Camera(w, h, f, f, w / 2, h / 2, c2w)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    logging.getLogger("stages.edit").setLevel(logging.WARNING)  # apply_edit logs every op of every re-apply
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_WARNING  # no init banner: stdout stays for the URL line
-    from models.capture import CaptureError
-    from models.gaussians import read_ply
-    from stages.cli import single_threaded_torch
-    from stages.config import ConfigError, load_config
+def open_session(args: argparse.Namespace):
+    """(session, starting camera, model path, save folder) of the parsed arguments: the model is read with its
+    settings (model.yaml), so the viewer renders it the way it was trained."""
+    from models.trained import load_model
+    from stages.config import load_config
 
     from .progressive import ViewSettings
     from .session import ViewerSession, named_selections
 
+    model, capture, scene, save_dir = _resolve(args)
+    edits = load_config(scene, presets=args.preset).get("edits") or {} if scene else {}
+    gaussians, model_settings = load_model(model)
+    settings = ViewSettings(layer=args.layer, max_path_length=args.max_path_length or
+                            model_settings.path.max_path_length, max_spp=args.max_spp,
+                            denoise_after=args.denoise_after, seed=args.seed)
+    session = ViewerSession(gaussians, named_selections(edits), edits, name=args.name, device=args.device,
+                            threads=args.threads, settings=settings, model=model_settings)
+    return session, _start_camera(capture, gaussians, args.resolution), model, save_dir
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    logging.getLogger("models.editing").setLevel(logging.WARNING)  # apply_edit logs every op of every re-apply
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # no init banner: stdout stays for the URL line
+    from models.capture import CaptureError
+    from stages.cli import single_threaded_torch
+    from stages.config import ConfigError
+
     single_threaded_torch()
     try:
-        model, capture, scene, save_dir = _resolve(args)
-        edits = load_config(scene, presets=args.preset).get("edits") or {} if scene else {}
-        settings = ViewSettings(layer=args.layer, max_path_length=args.max_path_length, max_spp=args.max_spp,
-                                denoise_after=args.denoise_after, seed=args.seed)
-        gaussians = read_ply(model)
-        session = ViewerSession(gaussians, named_selections(edits), edits, name=args.name, device=args.device,
-                                threads=args.threads, settings=settings)
-        camera = _start_camera(capture, gaussians, args.resolution)
+        session, camera, model, save_dir = open_session(args)
     except (CaptureError, ConfigError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -10,7 +10,6 @@ Every GUI control calls a ViewerSession method; scripts and tests call the same 
 from __future__ import annotations
 
 import contextlib
-import logging
 import sys
 import threading
 import time
@@ -19,116 +18,21 @@ from pathlib import Path
 import numpy as np
 
 from models.capture import Camera
-from stages.edit import EditSpecError
+from models.capture.color import linear_to_srgb, srgb_to_linear
+from models.editing import EditSpecError
 
-from .camera import box_from_pixels, camera_from_viser, viser_from_camera
-from .progressive import SHOWN_LAYERS, Frame, ProgressiveView
+from .camera import box_from_pixels, viser_from_camera
+from .client import ClientLoop
+from .progressive import SHOWN_LAYERS, Frame
 from .session import ViewerSession, gizmo_ops
-
-log = logging.getLogger("stages.view")
 
 BOX = "(box)"  # the selection dropdown's entry for a drawn box (parenthesised: never a selection's name)
 NONE = "(none)"
 
 
-def srgb_to_linear(rgb) -> list[float]:
+def gui_to_linear(rgb) -> list[float]:
     """GUI colour (0..255 sRGB) -> linear [0, 1] (diffuse and F0 are stored linear)."""
-    c = np.asarray(rgb, dtype=np.float64) / 255.0
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).round(4).tolist()
-
-
-def linear_to_srgb(rgb) -> tuple[int, int, int]:
-    c = np.clip(np.asarray(rgb, dtype=np.float64), 0, 1)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-    return tuple(int(round(v * 255)) for v in s)
-
-
-class _ClientLoop:
-    """Render thread of one browser tab."""
-
-    def __init__(self, app: "ViewerApp", client):
-        self.app, self.client = app, client
-        self.view: ProgressiveView = app.session.new_view(app.session.settings)
-        self.wake = threading.Event()
-        self.stopped = threading.Event()
-        self.last_frame: Frame | None = None
-        self.frames_sent = 0
-        self.rendered = 0
-        self.fps = 0.0
-        self.first_frame_s: dict[int, float] = {}  # scene version -> seconds from the edit to its first frame
-        self._last_render_t = None
-        self._version = -1  # scene version of the frame being rendered
-        client.camera.on_update(self._camera_moved)
-        self.thread = threading.Thread(target=self._run, name=f"view-client-{client.client_id}", daemon=True)
-        self.thread.start()
-
-    def _camera_moved(self, _cam) -> None:
-        cam, current = self.camera(), self.view.camera
-        if cam is not None and current is not None and ProgressiveView._camera_key(cam) != \
-                ProgressiveView._camera_key(current):
-            self.view.abort()  # the frame in flight shows the old view: drop it
-        self.wake.set()
-
-    def changed(self, force: bool = False) -> None:
-        """The session changed: drop the frame in flight if it renders an older scene (or ``force``: the path
-        length changed), and render the new state."""
-        if force or self.app.session.version != self._version:
-            self.view.abort()
-        self.wake.set()
-
-    def camera(self) -> Camera | None:
-        cam = self.client.camera
-        try:
-            return camera_from_viser(cam.position, cam.wxyz, cam.fov, cam.aspect, self.app.pixels)
-        except (AssertionError, ValueError, ZeroDivisionError):  # no camera message yet / zero-size canvas
-            return None
-
-    def _run(self) -> None:
-        while not self.stopped.is_set():
-            try:
-                if not self._tick():
-                    self.wake.wait(0.05)
-                    self.wake.clear()
-            except Exception:  # keep serving: log, show, and go on with the next frame
-                log.exception("render loop of client %s", self.client.client_id)
-                self.app._error("render failed; see the server log")
-                self.wake.wait(1.0)
-                self.wake.clear()
-
-    def _tick(self) -> bool:
-        cam = self.camera()
-        if cam is None:
-            return False
-        self.view.set_camera(cam)
-        self.view.configure(**vars(self.app.session.settings))
-        g, version, changed_at = self.app.session.snapshot()
-        self._version = version
-        frame = self.view.step(g, version)
-        if frame is None or self.stopped.is_set():
-            return False
-        self.client.scene.set_background_image(frame.rgb, format=self.app.image_format,
-                                               jpeg_quality=self.app.jpeg_quality, depth=frame.depth)
-        now = time.perf_counter()
-        if version not in self.first_frame_s:
-            self.first_frame_s[version] = now - changed_at
-            for old in sorted(self.first_frame_s)[:-64]:
-                del self.first_frame_s[old]
-        if frame.render_s > 0:
-            self.rendered += 1
-            if self._last_render_t is not None and frame.spp > 1:
-                dt = now - self._last_render_t
-                self.fps = 1.0 / dt if self.fps == 0 else 0.7 * self.fps + 0.3 / dt
-            self._last_render_t = now
-        self.last_frame = frame
-        self.frames_sent += 1
-        self.app._frame_shown(self)
-        return True
-
-    def stop(self) -> None:
-        self.stopped.set()
-        self.view.abort()
-        self.wake.set()
-        self.thread.join(timeout=10)
+    return srgb_to_linear(np.asarray(rgb, dtype=np.float64) / 255.0).round(4).tolist()
 
 
 class ViewerApp:
@@ -146,7 +50,7 @@ class ViewerApp:
         self.overlays = overlays  # False: no gizmo / selection points / box drawn over the image (screenshots)
         self.jpeg_quality = jpeg_quality
         self.save_dir = Path(save_dir) if save_dir is not None else Path.cwd()
-        self._loops: dict[int, _ClientLoop] = {}
+        self._loops: dict[int, ClientLoop] = {}
         self._loops_lock = threading.Lock()
         self._frame_cv = threading.Condition()
         self._syncing = False  # GUI values being set from here (their callbacks must not edit)
@@ -174,7 +78,7 @@ class ViewerApp:
         return f"http://{self.server.get_host()}:{self.server.get_port()}"
 
     def _connect(self, client) -> None:
-        loop = _ClientLoop(self, client)
+        loop = ClientLoop(self, client)
         with self._loops_lock:
             self._loops[client.client_id] = loop
 
@@ -192,11 +96,11 @@ class ViewerApp:
             loop.stop()
         self.server.stop()
 
-    def clients(self) -> list[_ClientLoop]:
+    def clients(self) -> list[ClientLoop]:
         with self._loops_lock:
             return list(self._loops.values())
 
-    def _frame_shown(self, loop: _ClientLoop) -> None:
+    def _frame_shown(self, loop: ClientLoop) -> None:
         with self._frame_cv:
             self._frame_cv.notify_all()
         self._update_status(loop)
@@ -260,16 +164,8 @@ class ViewerApp:
         """Write the edit spec YAML (default: <save_dir>/<edit name>.yaml) with the first tab's camera and
         accumulation for the record."""
         path = Path(path) if path is not None else self.save_dir / f"{self.session.name}.yaml"
-        view = None
         loops = self.clients()
-        if loops and loops[0].last_frame is not None:
-            f = loops[0].last_frame
-            cfg = loops[0].view.config()
-            view = {"camera": {"width": f.camera.width, "height": f.camera.height, "fl_x": f.camera.fl_x,
-                               "fl_y": f.camera.fl_y, "cx": f.camera.cx, "cy": f.camera.cy,
-                               "transform_matrix": f.camera.c2w.tolist()},
-                    "render": {"spp": cfg.spp, "seed": cfg.seed, "max_path_length": cfg.max_path_length,
-                               "denoise": cfg.denoise}}
+        view = loops[0].view.record() if loops and loops[0].last_frame is not None else None
         return self.session.save_spec(path, view)
 
     # ------------------------------------------------------------------ GUI
@@ -383,14 +279,14 @@ class ViewerApp:
             lambda _e: s.apply({"op": "set_roughness", "value": round(float(self.g_rough.value), 4)}, coalesce=True)))
 
         def set_f0(_e):
-            tint = np.asarray(srgb_to_linear(self.g_f0_tint.value))
+            tint = np.asarray(gui_to_linear(self.g_f0_tint.value))
             s.apply({"op": "set_f0", "value": (np.clip(tint * float(self.g_f0.value), 0, 1)).round(4).tolist()},
                     coalesce=True)
 
         self.g_f0.on_update(self._guard(set_f0))
         self.g_f0_tint.on_update(self._guard(set_f0))
         self.g_diffuse.on_update(self._guard(
-            lambda _e: s.apply({"op": "set_diffuse", "value": srgb_to_linear(self.g_diffuse.value)}, coalesce=True)))
+            lambda _e: s.apply({"op": "set_diffuse", "value": gui_to_linear(self.g_diffuse.value)}, coalesce=True)))
         self.g_undo.on_click(self._guard(lambda _e: s.undo()))
         self.g_reset.on_click(self._guard(lambda _e: s.reset()))
         self.g_named_apply.on_click(self._guard(lambda _e: s.apply_named_edit(self.g_named.value)))
@@ -400,7 +296,7 @@ class ViewerApp:
         def _(event):
             name = self.g_name.value.strip()
             if name != s.name:
-                from stages.edit import parse_edit
+                from models.editing import parse_edit
                 parse_edit(name, {"ops": [{"op": "delete", "select": {"all": True}}]})  # valid name?
                 s.name = name
             path = self.save()
@@ -468,7 +364,7 @@ class ViewerApp:
                                              for op in s.ops[-1:]):
                 self._set_gui(self.g_rough, round(min(max(stats["roughness"], 0.0), 1.0), 2))
                 self._set_gui(self.g_f0, round(min(max(float(np.mean(stats["f0"])), 0.0), 1.0), 2))
-                self._set_gui(self.g_diffuse, linear_to_srgb(stats["diffuse"]))
+                self._set_gui(self.g_diffuse, tuple(int(round(v * 255)) for v in linear_to_srgb(stats["diffuse"])))
             ops = s.ops
             if ops:
                 lines = [f"{i + 1}. `{op['op']}` " + ", ".join(f"{k}={v}" for k, v in op.items()
@@ -499,11 +395,5 @@ class ViewerApp:
             self.box_node.remove()
             self.box_node = None
 
-    def _update_status(self, loop: _ClientLoop) -> None:
-        f = loop.last_frame
-        st = self.session.settings
-        ff = loop.first_frame_s.get(f.version)
-        spp = f"{f.spp}/{st.max_spp} spp" if st.max_path_length > 1 else "primary only"
-        self.g_status.content = (
-            f"{spp}{' · denoised' if f.denoised else ''} · {loop.fps:.1f} fps · {f.camera.width}x{f.camera.height}"
-            f"\n\nfirst frame after the last change: {ff:.2f} s · {len(self.session.scene()[0]):,} Gaussians")
+    def _update_status(self, loop: ClientLoop) -> None:
+        self.g_status.content = loop.status()

@@ -50,7 +50,7 @@ def run_view_benchmark(session: ViewerSession, camera: Camera, frames: int = 10,
     _settle(session)
     # denoiser at this size (view.layers() denoises once denoise_after samples are in)
     layers = view.layers()
-    from stages.render.denoise import denoise
+    from models.rendering import denoise
 
     _, t_denoise = _timed(lambda: denoise(layers["specular_noisy"], albedo=layers["f0"], normal=layers["normal"]))
 

@@ -1,7 +1,7 @@
 """Progressive rendering for the viewer: 1 reflection sample per pixel per frame, accumulated while camera,
 scene and settings stay the same, Open Image Denoise once enough samples are in.
 
-A frame is ``stages.render.render_view`` at spp=1 with a generator seeded once per accumulation, so N frames
+A frame is ``models.rendering.render_view`` at spp=1 with a generator seeded once per accumulation, so N frames
 draw exactly the random numbers of ``render_view`` at spp=N with that seed (same order, same sums): the
 accumulated image equals the render stage's image at equal spp and seed (the replay test checks it). The
 primary segment is deterministic and is traced once per accumulation (``PrimaryCache``), not every frame.
@@ -17,13 +17,14 @@ import numpy as np
 import torch
 
 from models.capture import Camera
+from models.capture.layers import GBUFFER, SCORED
 from models.gaussians import Gaussians
-from stages.render.denoise import denoise
-from stages.render.render import RenderConfig, render_view, to_png
+from models.pathtrace.paths import PathConfig
+from models.rendering import RenderConfig, denoise, render_view, to_png
 
 from .camera import z_depth
 
-SHOWN_LAYERS = ("final", "diffuse", "specular", "normal", "depth", "roughness", "f0")
+SHOWN_LAYERS = (*SCORED, *GBUFFER)  # final, diffuse, specular, depth, normal, roughness, f0
 SAMPLED_LAYERS = ("final", "specular")  # the layers more samples improve
 FAR_DEPTH = 160.0  # z-depth sent where no surface was hit (viser's depth encoding ends at 167.77)
 
@@ -105,8 +106,9 @@ class ProgressiveView:
     (None when nothing changed). Several views may share a tracer through ``render_lock``."""
 
     def __init__(self, tracer, settings: ViewSettings | None = None, render_lock: threading.Lock | None = None,
-                 batch_rays: int = 65536):
+                 batch_rays: int = 65536, path: PathConfig | None = None):
         self.tracer = tracer
+        self.path = path or PathConfig()  # the model's path settings (max_path_length: settings.max_path_length)
         self.settings = settings or ViewSettings()
         self.render_lock = render_lock or threading.Lock()
         self.batch_rays = batch_rays
@@ -158,6 +160,14 @@ class ProgressiveView:
                             denoise=s.denoise_after > 0 and self.spp >= s.denoise_after, seed=s.seed,
                             batch_rays=max(self.batch_rays, n), path_views=0, video=False)
 
+    def record(self) -> dict:
+        """This view's camera and accumulation as saved with an edit spec (replayable by the render stage)."""
+        c, cfg = self.camera, self.config()
+        return {"camera": {"width": c.width, "height": c.height, "fl_x": c.fl_x, "fl_y": c.fl_y, "cx": c.cx,
+                           "cy": c.cy, "transform_matrix": c.c2w.tolist()},
+                "render": {"spp": cfg.spp, "seed": cfg.seed, "max_path_length": cfg.max_path_length,
+                           "denoise": cfg.denoise}}
+
     def needs_frame(self) -> bool:
         s = self.settings
         if self.camera is None:
@@ -186,7 +196,7 @@ class ProgressiveView:
                                    denoise=False, seed=s.seed, batch_rays=max(self.batch_rays, cam.width * cam.height))
                 self._trace.arm()
                 try:
-                    img = render_view(self._trace, cam, gaussians, cfg, self._generator)
+                    img = render_view(self._trace, cam, gaussians, cfg, self._generator, self.path)
                 except FrameAborted:
                     self._key = None  # the generator moved: this accumulation cannot go on
                     return None

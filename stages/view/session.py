@@ -1,7 +1,7 @@
 """The editing session behind the viewer: the scene, the edit spec being built, the current selection.
 No viser here: the GUI (app.py) and the tests drive the same methods.
 
-The session's edit IS an edit spec (stages/edit/spec.py) and the scene shown is always
+The session's edit IS an edit spec (models/editing/spec.py) and the scene shown is always
 ``apply_edit(original, spec)``, recomputed on every change, so a saved spec replays through the
 ``edit`` stage to the same Gaussians by construction. Selection rules, those of the spec:
 
@@ -28,12 +28,10 @@ import torch
 import yaml
 
 from models.capture import Camera
+from models.editing import EditSpecError, apply_edit, parse_edit, parse_selection, select, selection_centre
 from models.gaussians import Gaussians
-from models.tracer import Tracer, TracerConfig
-from stages.edit import EditSpecError, parse_edit, select
-from stages.edit.edit import apply_edit
-from stages.edit.ops import selection_centre
-from stages.edit.spec import parse_selection
+from models.tracer import Tracer
+from models.trained import ModelSettings
 
 from .progressive import Frame, ProgressiveView, ViewSettings
 
@@ -86,7 +84,7 @@ class ViewerSession:
 
     def __init__(self, gaussians: Gaussians, selections: dict[str, dict] | None = None,
                  edits: dict[str, dict] | None = None, name: str = "viewer_edit", device: str = "cpu",
-                 threads: int = 2, settings: ViewSettings | None = None):
+                 threads: int = 2, settings: ViewSettings | None = None, model: ModelSettings | None = None):
         if not isinstance(gaussians, Gaussians):
             raise TypeError(f"gaussians must be a Gaussians, got {type(gaussians).__name__}")
         parse_edit(name, {"ops": [{"op": "delete", "select": {"all": True}}]})  # validates the name
@@ -94,11 +92,13 @@ class ViewerSession:
         # the Gaussians stay where they are (CPU): render_view builds rays and sums on the CPU, and the tracer
         # copies parameters to its device (cuda: BVH and kernels there) and its outputs back
         self.original = gaussians
+        # how the model renders (model.yaml: tracer and path settings); the defaults for a bare gaussians.ply
+        self.model = model or ModelSettings(source="defaults (no model.yaml given)")
         # one tracer for every view (its BVH follows the edited scene: refit when the count is unchanged,
         # else rebuilt; models/tracer/bvh.py); views take render_lock around a frame
-        self.tracer = Tracer(TracerConfig(num_threads=threads), device=device)
+        self.tracer = Tracer(self.model.tracer_config(threads), device=device)
         self.render_lock = threading.Lock()
-        self.settings = settings or ViewSettings()
+        self.settings = settings or ViewSettings(max_path_length=self.model.path.max_path_length)
         self.view = self.new_view()
         self.named_edits = copy.deepcopy(edits or {})
         self.selections = dict(selections if selections is not None else named_selections(self.named_edits))
@@ -120,7 +120,8 @@ class ViewerSession:
     # ------------------------------------------------------------------ rendering
     def new_view(self, settings: ViewSettings | None = None) -> ProgressiveView:
         """A progressive view (own camera, accumulation and settings) sharing this session's tracer."""
-        return ProgressiveView(self.tracer, copy.copy(settings or self.settings), self.render_lock)
+        return ProgressiveView(self.tracer, copy.copy(settings or self.settings), self.render_lock,
+                               path=self.model.path)
 
     def set_camera(self, camera: Camera) -> None:
         """Camera of the session's own view (``step``)."""

@@ -12,13 +12,11 @@ rule benchmark_tracer:
 
 
 rule sweep:
-    """Speed/accuracy sweep of one scene: table (log), sweep.json, report.html with the Pareto plots and the
-    recommended settings (target: sweep_all)."""
+    """Speed/accuracy sweep of one scene: table (log) and sweep.json (target: sweep_all)."""
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
     output:
         json=f"{RESULTS}/sweep/{{scene}}/sweep.json",
-        html=f"{RESULTS}/sweep/{{scene}}/report.html",
     params:
         py=PY,
         cfg=lambda wc: json.dumps(scene_config(wc.scene), sort_keys=True),
@@ -34,7 +32,21 @@ rule sweep:
         "--out $(dirname {output.json}) > {log} 2>&1"
 
 
+rule sweep_report:
+    """The sweep drawn by the report stage: Pareto plots, table, recommended settings."""
+    input:
+        f"{RESULTS}/sweep/{{scene}}/sweep.json",
+    output:
+        f"{RESULTS}/sweep/{{scene}}/report.html",
+    params:
+        py=PY,
+    log:
+        f"{RESULTS}/sweep/{{scene}}/report.log",
+    shell:
+        "{params.py} -m stages.report sweep {input} --out {output} > {log} 2>&1"
+
+
 rule sweep_all:
     """The sweep of every requested scene: snakemake --cores 2 sweep_all --config scene=demo"""
     input:
-        [f"{RESULTS}/sweep/{s}/sweep.json" for s in SCENES],
+        [f"{RESULTS}/sweep/{s}/report.html" for s in SCENES],

@@ -69,7 +69,7 @@ def scenes_of_kind(kind):
 
 def _check_photos(scene):
     """A photos scene needs its photos before anything runs (unless its capture was already made)."""
-    from stages.poses.photos import missing_photos_message
+    from models.poses.photos import missing_photos_message
 
     cfg = scene_config(scene)
     if cfg["kind"] != "photos" or os.path.isfile(f"{RESULTS}/{scene}/capture/transforms.json"):
@@ -116,7 +116,7 @@ def edit_targets(scene):
 def report_inputs(wildcards):
     """What a scene's report shows: the stages that ran for it (its named edits when edits_in_all is on)."""
     base = f"{RESULTS}/{wildcards.scene}"
-    inputs = {"metrics": f"{base}/metrics.json", "renders": f"{base}/renders", "model": f"{base}/model/gaussians.ply"}
+    inputs = {"metrics": f"{base}/metrics.json", "renders": f"{base}/renders", "model": f"{base}/model/model.yaml"}
     if scene_config(wildcards.scene).get("edits_in_all"):
         inputs["edits"] = edit_targets(wildcards.scene)
     return inputs
@@ -134,10 +134,11 @@ def training_capture(wildcards):
 
 
 def buffernet_model(scene):
-    """buffers.model: a bare name = a network this workflow trains (results/buffernet/<name>/pipeline), else a
+    """buffers.model: a bare name = a network this workflow trains (<results>/buffernet/<name>/pipeline), else a
     path to a saved buffer network."""
-    model = str(scene_config(scene)["buffers"]["model"])
-    return f"{RESULTS}/buffernet/{model}/pipeline" if "/" not in model else model
+    from models.buffernet.fill import network_path
+
+    return str(network_path(str(scene_config(scene)["buffers"]["model"]), RESULTS))
 
 
 def buffernet_section(key):

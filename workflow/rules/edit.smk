@@ -1,6 +1,6 @@
-# Named edits of a scene (config edits:, stages/edit/spec.py): edited model + renders of the test views, and
-# for synthetic scenes the ground truth re-rendered with the edit's synth counterpart, scored next to the
-# unedited renders. Target: snakemake --cores 2 edits --config scene=demo
+# Named edits of a scene (config edits:, models/editing/spec.py): edited model + renders of the test views, and
+# for synthetic scenes the ground truth re-rendered (synth stage) with the edit's synth counterpart, scored next
+# to the unedited renders. Target: snakemake --cores 2 edits --config scene=demo
 
 
 # the scene wildcard of render / reconstruct / evaluate would also match results/<scene>/edits/<name>/...
@@ -21,9 +21,9 @@ rule edit:
     """Apply one named edit to the trained model and render the capture's test views (N spp + denoiser)."""
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
-        model=f"{RESULTS}/{{scene}}/model/gaussians.ply",
+        model=f"{RESULTS}/{{scene}}/model/model.yaml",
     output:
-        model=f"{RESULTS}/{{scene}}/edits/{{edit}}/model/gaussians.ply",
+        model=f"{RESULTS}/{{scene}}/edits/{{edit}}/model/model.yaml",
         renders=directory(f"{RESULTS}/{{scene}}/edits/{{edit}}/renders"),
     wildcard_constraints:
         scene="[A-Za-z0-9_-]+",
@@ -38,12 +38,13 @@ rule edit:
     threads: 2
     shell:
         "{params.py} -m stages.edit apply --edit {wildcards.edit} --edit-json {params.edit:q} "
-        "--config-json {params.cfg:q} --model {input.model} --capture {input.capture} "
+        "--config-json {params.cfg:q} --model $(dirname {input.model}) --capture {input.capture} "
         "--out $(dirname {output.renders}) --device {params.device} > {log} 2>&1"
 
 
 rule edit_truth:
-    """Ground truth of one edit: the synthetic scene's test views rendered with the edit's ground_truth ops."""
+    """Ground truth of one edit: the synthetic scene's test views rendered by the synth stage with the edit's
+    ground_truth ops (each view with the sampler seed it has in the capture)."""
     output:
         directory(f"{RESULTS}/{{scene}}/edits/{{edit}}/truth"),
     wildcard_constraints:
@@ -51,13 +52,14 @@ rule edit_truth:
         edit="[A-Za-z0-9_-]+",
     params:
         py=PY,
-        edit=lambda wc: json.dumps(scene_config(wc.scene)["edits"][wc.edit], sort_keys=True),
+        ground_truth=lambda wc: json.dumps(scene_config(wc.scene)["edits"][wc.edit].get("ground_truth") or [],
+                                           sort_keys=True),
         synth=section("synth"),
     log:
         f"{RESULTS}/{{scene}}/logs/edit_truth_{{edit}}.log",
     shell:
-        "{params.py} -m stages.edit truth --edit {wildcards.edit} --edit-json {params.edit:q} "
-        "--synth-json {params.synth:q} --out {output} > {log} 2>&1"
+        "{params.py} -m stages.synth --config-json {params.synth:q} --edits-json {params.ground_truth:q} "
+        "--splits test --name edit:{wildcards.edit} --no-progress --out {output} > {log} 2>&1"
 
 
 rule edit_metrics:

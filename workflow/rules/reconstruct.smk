@@ -1,10 +1,12 @@
 rule reconstruct:
-    """Optimise the Gaussian scene (warm-up, then path-traced reflections); resumes from its checkpoint."""
+    """Optimise the Gaussian scene (warm-up, then path-traced reflections) into the model folder: gaussians.ply +
+    model.yaml (the tracer / path settings every consumer renders it with)."""
     input:
         capture=training_capture,
         init=f"{RESULTS}/{{scene}}/init/points.ply",
     output:
-        f"{RESULTS}/{{scene}}/model/gaussians.ply",
+        gaussians=f"{RESULTS}/{{scene}}/model/gaussians.ply",
+        settings=f"{RESULTS}/{{scene}}/model/model.yaml",
     params:
         py=PY,
         cfg=section("reconstruct"),
@@ -14,14 +16,14 @@ rule reconstruct:
     threads: 2
     shell:
         "{params.py} -m stages.reconstruct --config-json {params.cfg:q} --capture {input.capture} "
-        "--init {input.init} --out $(dirname {output}) --device {params.device} > {log} 2>&1"
+        "--init {input.init} --out $(dirname {output.gaussians}) --device {params.device} > {log} 2>&1"
 
 
 rule render:
     """N spp renders + denoiser of the test views and a novel camera path, every layer as EXR + PNG."""
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
-        model=f"{RESULTS}/{{scene}}/model/gaussians.ply",
+        model=f"{RESULTS}/{{scene}}/model/model.yaml",
     output:
         directory(f"{RESULTS}/{{scene}}/renders"),
     params:
@@ -33,7 +35,7 @@ rule render:
     threads: 2
     shell:
         "{params.py} -m stages.render --config-json {params.cfg:q} --capture {input.capture} "
-        "--model {input.model} --out {output} --device {params.device} > {log} 2>&1"
+        "--model $(dirname {input.model}) --out {output} --device {params.device} > {log} 2>&1"
 
 
 rule evaluate:
@@ -42,7 +44,7 @@ rule evaluate:
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
         renders=f"{RESULTS}/{{scene}}/renders",
-        model=f"{RESULTS}/{{scene}}/model/gaussians.ply",
+        model=f"{RESULTS}/{{scene}}/model/model.yaml",
     output:
         f"{RESULTS}/{{scene}}/metrics.json",
     params:

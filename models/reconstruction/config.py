@@ -1,0 +1,97 @@
+"""Reconstruction settings (the ``reconstruct`` config section); defaults are the reference's (REFERENCE.md).
+
+One dataclass tree, a doc per field: the schema of the section (``workflow/schemas/reconstruct.schema.yaml``) is
+generated from it (``models/settings.py``). Adding an option is one field here (and the regenerated schema).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from models.pathtrace.paths import PathConfig
+from models.settings import from_dict, setting
+from models.tracer.config import TracerConfig
+
+_PATH = PathConfig()
+
+
+@dataclass
+class LossWeights:
+    """Loss weights (paper Eq. 4-7)."""
+
+    diffuse: float = setting(5.0, "L1 on the first segment's diffuse layer", minimum=0)
+    specular: float = setting(3.0, "L1 on the path-traced specular estimate (after warm-up)", minimum=0)
+    depth: float = setting(2.5, "L1 on expected depth (distance along the ray)", minimum=0)
+    normal: float = setting(2.5, "L1 on the accumulated (unnormalised) normal", minimum=0)
+    roughness: float = setting(1.0, "L1 on blended roughness", minimum=0)
+    f0: float = setting(1.0, "L1 on blended F0", minimum=0)
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates per parameter group."""
+
+    position_init: float = setting(1.6e-4, "x scene extent, decays exponentially to position_final", minimum=0)
+    position_final: float = setting(1.6e-6, "x scene extent", minimum=0)
+    normal: float = setting(0.0025, minimum=0)
+    roughness: float = setting(0.0025, minimum=0)
+    f0: float = setting(0.0025, minimum=0)
+    diffuse: float = setting(0.005, minimum=0)
+    opacity: float = setting(0.025, minimum=0)
+    scale: float = setting(0.005, minimum=0)
+    rotation: float = setting(0.001, minimum=0)
+
+
+@dataclass
+class ReconstructConfig:
+    """Reconstruction of one Gaussian scene with path-traced reflections."""
+
+    iterations: int = setting(8000, "optimisation steps", minimum=1)
+    warmup: int = setting(750, "steps with primary rays only; then reflections (and far field) on", minimum=0)
+    rays_per_step: int = setting(0, "rays per step drawn from all training pixels; 0 = one whole view per step",
+                                 minimum=0)
+    max_path_length: int = setting(_PATH.max_path_length, "path segments (1 = no reflections); stored with the "
+                                   "model, renders use it", minimum=1, maximum=16)
+    sampler: str = setting(_PATH.sampler, "reflection sampling: vndf | ndf (reference); stored with the model",
+                           enum=["vndf", "ndf"])
+    loss: LossWeights = setting(default_factory=LossWeights, doc="loss weights")
+    lr: LearningRates = setting(default_factory=LearningRates, doc="learning rates")
+    tracer: TracerConfig = setting(default_factory=TracerConfig, doc="ray tracer settings (kernel_p, "
+                                   "transmittance_threshold, ...); stored with the model, so every consumer "
+                                   "renders it the way it was trained")
+    adam_eps: float = setting(1e-15, "Adam epsilon", exclusiveMinimum=0)
+    prune_every: int = setting(125, "pruning period (steps); 0 = never", minimum=0)
+    prune_from: int = setting(1250, "first step that prunes", minimum=0)
+    prune_min_weight: float = setting(0.1, "keep Gaussians whose blending weight summed over a view, averaged over "
+                                      "views, is >= this at the reference's 768-pixel image height (scaled by "
+                                      "(H / 768)^2 at height H)", minimum=0)
+    prune_views: int = setting(8, "views traced to measure blending weights at a pruning step", minimum=1)
+    far_field: str = setting("auto", "auto (only if reflections can see past the capture) | on | off",
+                             enum=["auto", "on", "off"])
+    far_field_count: int = setting(75000, "far-field Gaussians added at the end of warm-up", minimum=0)
+    far_field_escape: float = setting(0.01, "auto: on when more mirror-like reflections than this miss the init",
+                                      minimum=0, maximum=1)
+    reflection_fill_count: int = setting(0, "with the far field: Gaussians along open mirror reflections (0 = off)",
+                                         minimum=0)
+    mirror_stereo_count: int = setting(8000, "with the far field: Gaussians placed by stereo on planar mirrors "
+                                       "(0 = off)", minimum=0)
+    highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
+    radiance_clamp: float = setting(0.0, "clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: "
+                                    "5.0)", minimum=0)
+    checkpoint_every: int = setting(1000, "steps between checkpoints (and at the end)", minimum=1)
+    log_every: int = setting(25, "steps between metrics-log lines", minimum=1)
+    seed: int = setting(0, "random seed (ray batches, far field, fills)")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ReconstructConfig":
+        moved = sorted({"kernel_p", "transmittance_threshold"} & set(d))
+        if moved:
+            raise ValueError(f"reconstruct.{moved[0]} is now reconstruct.tracer.{moved[0]} (tracer settings are "
+                             "stored with the model)")
+        if "threads" in d:
+            raise ValueError("reconstruct.threads is now reconstruct.tracer.num_threads")
+        return from_dict(cls, d, "reconstruct")
+
+    def path(self) -> PathConfig:
+        """The path settings this model trains (and is rendered) with."""
+        return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler)

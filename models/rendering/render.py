@@ -1,0 +1,110 @@
+"""Render a trained scene: N samples per pixel of the reflection paths, denoised, every layer as float32 images.
+
+The path settings (max path length, sampler) are the model's (``models/trained.py``); ``RenderConfig`` may
+override them for one render (the sweep's render-time knobs, the viewer's path-length switch).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from models.capture import Camera
+from models.gaussians import Gaussians
+from models.pathtrace.paths import PathConfig, trace_paths
+from models.settings import from_dict, setting
+
+from .denoise import denoise
+from .images import write_layers
+
+
+@dataclass
+class RenderConfig:
+    """Rendering settings (the ``render`` config section)."""
+
+    spp: int = setting(128, "reflection samples per pixel (the primary segment is deterministic: traced once)",
+                       minimum=0)
+    max_path_length: int | None = setting(None, "path segments (1 = no reflections); null = the model's "
+                                          "(model.yaml)", minimum=1, maximum=16)
+    sampler: str | None = setting(None, "vndf | ndf; null = the model's (model.yaml)", enum=["vndf", "ndf", None])
+    denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
+    path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
+                              minimum=0)
+    video: bool = setting(True, "also write the novel path as a video/GIF when imageio can")
+    batch_rays: int = setting(65536, "rays traced per call (memory bound)", minimum=1)
+    seed: int = setting(0, "sampler seed")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RenderConfig":
+        return from_dict(cls, d, "render")
+
+    def path(self, model: PathConfig) -> PathConfig:
+        """The model's path settings with this render's overrides."""
+        over = {k: getattr(self, k) for k in ("max_path_length", "sampler") if getattr(self, k) is not None}
+        return dataclasses.replace(model, **over)
+
+
+@torch.no_grad()
+def render_view(trace_fn, camera: Camera, gaussians: Gaussians, config: RenderConfig, generator: torch.Generator,
+                path: PathConfig) -> dict[str, np.ndarray]:
+    """Layers of one view as float32 [H, W, C]: final, diffuse, specular (denoised if on), specular_noisy,
+    depth, normal, roughness, f0, transmittance, bounce<i> (mean contribution of reflection segment i).
+    ``path``: the model's path settings (``config`` may override them)."""
+    h, w = camera.height, camera.width
+    dirs = torch.tensor(camera.ray_directions().reshape(-1, 3), dtype=torch.float32)
+    origins = torch.tensor(camera.origin, dtype=torch.float32).expand_as(dirs).contiguous()
+    path_cfg = config.path(path)
+    length = path_cfg.max_path_length
+    layers: dict[str, list[np.ndarray]] = {}
+    for start in range(0, len(dirs), config.batch_rays):
+        o, d = origins[start:start + config.batch_rays], dirs[start:start + config.batch_rays]
+        primary = trace_fn(o, d, gaussians)
+        spec = torch.zeros((len(d), 3))
+        bounces = [torch.zeros((len(d), 3)) for _ in range(length - 1)]
+        for _ in range(config.spp if length > 1 else 0):
+            out = trace_paths(trace_fn, o, d, gaussians, path_cfg, generator, primary=primary)
+            spec += out.specular
+            for i, b in enumerate(out.bounces):
+                bounces[i] += b
+        n = max(config.spp, 1)
+        opacity = primary.opacity()
+        chunk = {
+            "diffuse": primary.diffuse,
+            "specular_noisy": spec / n,
+            "depth": primary.depth.reshape(-1, 1),
+            "normal": torch.nn.functional.normalize(primary.normal, dim=-1),
+            "roughness": (primary.roughness.reshape(-1, 1) / opacity).clamp(0, 1),
+            "f0": (primary.f0 / opacity).clamp(0, 1),
+            "transmittance": primary.transmittance.reshape(-1, 1),
+            **{f"bounce{i + 1}": b / n for i, b in enumerate(bounces)},
+        }
+        for k, v in chunk.items():
+            layers.setdefault(k, []).append(v.float().numpy())
+    img = {k: np.concatenate(v).reshape(h, w, -1).astype(np.float32) for k, v in layers.items()}
+    img["specular"] = img["specular_noisy"]
+    if config.denoise and length > 1 and config.spp > 0:
+        img["specular"] = np.maximum(denoise(img["specular_noisy"], albedo=img["f0"], normal=img["normal"]), 0)
+    img["final"] = img["diffuse"] + img["specular"]
+    return img
+
+
+def render_views(tracer, views, gaussians: Gaussians, config: RenderConfig, path: PathConfig, out_dir: Path,
+                 generator: torch.Generator | None = None, desc: str = "render",
+                 progress: bool = True) -> dict[str, float]:
+    """Render ``views`` (objects with ``.name`` and ``.camera``) into ``out_dir`` (EXR + png/) with one
+    ``generator`` for the whole sequence (default: seeded with ``config.seed``); returns seconds per view."""
+    if generator is None:
+        generator = torch.Generator().manual_seed(config.seed)
+    timings = {}
+    for view in tqdm(views, desc=desc, unit="view", disable=not progress):
+        t0 = time.perf_counter()
+        img = render_view(tracer.trace, view.camera, gaussians, config, generator, path)
+        timings[view.name] = round(time.perf_counter() - t0, 3)
+        write_layers(out_dir, view.name, img)
+    return timings
