@@ -17,7 +17,8 @@ Capture conventions (what callers pass in and get back):
 
 Radiance (the input RGB and the diffuse / specular targets) is HDR: it is multiplied by a per-image
 ``exposure`` (``input_exposure``: the 95th percentile of the input's luminance maps to 1.0), then
-tonemapped by the fixed invertible curve ``tonemap`` into [-1, 1]. ``input_exposure`` + ``encode_rgb``
+mapped by the fixed invertible curve ``radiance_to_unit`` (Reinhard + gamma: the network's encoding, not a
+display tonemap) into [-1, 1]. ``input_exposure`` + ``encode_rgb``
 are what both training and inference call, so exposure handling is identical in both; scaling the input
 by any k > 0 gives the same encoded image. Decoded values are clipped to their valid range.
 
@@ -76,14 +77,15 @@ def check_rgb(rgb: np.ndarray, where: str = "rgb_linear") -> np.ndarray:
     return rgb.astype(np.float32, copy=False)
 
 
-def tonemap(x: torch.Tensor) -> torch.Tensor:
+def radiance_to_unit(x: torch.Tensor) -> torch.Tensor:
     """Exposed linear radiance ``x >= 0`` -> [-1, 1): ``2 (x / (1 + x))^(1/2.2) - 1``. NaN/negative -> 0."""
     x = torch.nan_to_num(x, nan=0.0, posinf=1e6).clamp_min(0.0)
     return 2.0 * (x / (1.0 + x)).pow(1.0 / TONEMAP_GAMMA) - 1.0
 
 
-def inverse_tonemap(y: torch.Tensor) -> torch.Tensor:
-    """Inverse of ``tonemap``; ``y`` is clipped to [-1, 2 TONEMAP_MAX^(1/2.2) - 1] first (output in [0, 999])."""
+def radiance_from_unit(y: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``radiance_to_unit``; ``y`` is clipped to [-1, 2 TONEMAP_MAX^(1/2.2) - 1] first (output in
+    [0, 999])."""
     r = ((y + 1.0) / 2.0).clamp(0.0, 1.0).pow(TONEMAP_GAMMA).clamp(0.0, TONEMAP_MAX)
     return r / (1.0 - r)
 
@@ -101,9 +103,9 @@ def input_exposure(rgb_linear: np.ndarray) -> float:
 
 
 def encode_rgb(rgb_linear: np.ndarray, exposure: float) -> torch.Tensor:
-    """Linear RGB ``[H, W, 3]`` -> ``[3, H, W]`` float32 in [-1, 1): ``tonemap(exposure * rgb)``."""
+    """Linear RGB ``[H, W, 3]`` -> ``[3, H, W]`` float32 in [-1, 1): ``radiance_to_unit(exposure * rgb)``."""
     rgb = torch.from_numpy(np.ascontiguousarray(check_rgb(rgb_linear)))
-    return tonemap(rgb * float(exposure)).permute(2, 0, 1).contiguous()
+    return radiance_to_unit(rgb * float(exposure)).permute(2, 0, 1).contiguous()
 
 
 def _hw(array: np.ndarray, buffer: str, channels: int) -> np.ndarray:
@@ -148,7 +150,7 @@ def encode_target(buffer: str, array: np.ndarray, exposure: float, mask: np.ndar
     else:
         a = _hw(array, buffer, 3)
         if buffer in RADIANCE:
-            t = tonemap(torch.from_numpy(a) * float(exposure))
+            t = radiance_to_unit(torch.from_numpy(a) * float(exposure))
         elif buffer == "normal":
             t = torch.from_numpy(np.nan_to_num(a)).clamp(-1.0, 1.0)
         else:  # f0
@@ -184,7 +186,7 @@ def decode_output(buffer: str, tensor: torch.Tensor, exposure: float) -> np.ndar
     if buffer in SCALAR:
         return ((t.mean(dim=0) + 1.0) / 2.0).clamp(0.0, 1.0).numpy()
     if buffer in RADIANCE:
-        out = inverse_tonemap(t) / float(exposure)
+        out = radiance_from_unit(t) / float(exposure)
     elif buffer == "normal":
         norm = t.norm(dim=0, keepdim=True)
         facing = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand_as(t)

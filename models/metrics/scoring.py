@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from models.capture import Capture, read_view_buffers
-from models.capture.color import linear_to_srgb as tonemap
+from models.capture.color import linear_to_srgb  # the display tonemap: clamp + sRGB curve
 from models.capture.layers import SCORED
 
 from .image import psnr, ssim
@@ -46,8 +46,8 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
             p, t = np.clip(pred[layer], 0, 1), np.clip(gt[layer], 0, 1)
             row[f"psnr_{layer}"] = psnr(p, t)
             row[f"ssim_{layer}"] = ssim(p, t)
-            row[f"psnr_{layer}_tonemapped"] = psnr(tonemap(pred[layer]), tonemap(gt[layer]))
-            row[f"ssim_{layer}_tonemapped"] = ssim(tonemap(pred[layer]), tonemap(gt[layer]))
+            row[f"psnr_{layer}_tonemapped"] = psnr(linear_to_srgb(pred[layer]), linear_to_srgb(gt[layer]))
+            row[f"ssim_{layer}_tonemapped"] = ssim(linear_to_srgb(pred[layer]), linear_to_srgb(gt[layer]))
         for name, box in (regions or {}).items():
             m = region_mask(view, box["min"], box["max"])
             row[f"{name}_pixels"] = int(m.sum())
