@@ -12,6 +12,11 @@ from stages.config import CONFIGS, ConfigError, known, load_config
 
 min_version("9.0")
 
+# a scene is one folder under the results root (its name: config.schema.yaml's pattern): results/sweep/<scene>/...
+# and results/<scene>/edits/<edit>/... never match a rule's {scene}
+wildcard_constraints:
+    scene="[A-Za-z0-9_-]+",
+
 PY = sys.executable  # the interpreter running Snakemake runs the stages too
 
 
