@@ -33,7 +33,8 @@ def evaluate_hits(origins, dirs, means, w2l, opacities, config: TracerConfig):
     d_l = torch.einsum("nij,rj->rni", w2l, dirs)                                # [R, N, 3]
     dd = (d_l * d_l).sum(-1)
     t = -(o_l * d_l).sum(-1) / dd                                               # [R, N]
-    closest = o_l + t[..., None] * d_l                                          # local closest point
+    # local closest point o_l + t d_l, as d_l x (o_l x d_l) / dd: no cancellation along thin axes (hit.py)
+    closest = torch.linalg.cross(d_l, torch.linalg.cross(o_l, d_l, dim=-1), dim=-1) / dd[..., None]
     r2 = (closest * closest).sum(-1)
     response = torch.exp(-(r2**p) / (2 * p))
     raw_alpha = opacities[None] * response

@@ -2,7 +2,10 @@
 
 In the local frame x_l = M (x - mean) the Gaussian is the unit isotropic one; the
 local ray o_l + t d_l keeps the world ray parameter t. The max response lies at the
-local ray's closest point to the origin: t* = -(o_l . d_l) / (d_l . d_l), r^2 = |o_l + t* d_l|^2.
+local ray's closest point to the origin: t* = -(o_l . d_l) / (d_l . d_l), r^2 = |q|^2 with
+q = o_l + t* d_l. q is computed as d_l x (o_l x d_l) / (d_l . d_l) (the same point): along a thin axis
+(scale ratio 1e-6: local coordinates 1e6 times the others) o_l + t* d_l cancels two large numbers and
+float32 lost the whole response, the triple product does not (``closest_point``).
 """
 
 from __future__ import annotations
@@ -36,6 +39,12 @@ def ray_box_overlap(o: wp.vec3, d: wp.vec3, s: float, t_min: float) -> int:
 
 
 @wp.func
+def closest_point(o_l: wp.vec3, d_l: wp.vec3, dd: float) -> wp.vec3:
+    """o_l + t* d_l, t* = -(o_l . d_l) / dd, as d_l x (o_l x d_l) / dd (no cancellation along thin axes)."""
+    return wp.cross(d_l, wp.cross(o_l, d_l)) / dd
+
+
+@wp.func
 def kernel_response(r2: float, p: int) -> float:
     """exp(-r^(2p) / (2p)) from r^2."""
     return wp.exp(-wp.pow(r2, float(p)) / float(2 * p))
@@ -56,7 +65,7 @@ def eval_hit(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: floa
     if dd <= 0.0:
         return wp.vec3(0.0, 0.0, 1.0)
     t = -wp.dot(o_l, d_l) / dd
-    q = o_l + t * d_l
+    q = closest_point(o_l, d_l, dd)
     if t <= t_min:
         return wp.vec3(t, 0.0, 1.0)
     if wp.max(wp.max(wp.abs(q[0]), wp.abs(q[1])), wp.abs(q[2])) > s:
@@ -101,7 +110,7 @@ def hit_grad_geometry(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opac
     d_l = w2l * d
     dd = wp.dot(d_l, d_l)
     t = -wp.dot(o_l, d_l) / dd
-    q = o_l + t * d_l
+    q = closest_point(o_l, d_l, dd)
     r2 = wp.dot(q, q)
     response = kernel_response(r2, p)
     raw = opacity * response
@@ -110,6 +119,6 @@ def hit_grad_geometry(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opac
         wp.atomic_add(g_opacity, gid, dl_dalpha * response)
         g_r2 = dl_dalpha * (-0.5 * raw * wp.pow(r2, float(p - 1)))
     g_ol = (2.0 * g_r2) * q - (dl_dt / dd) * d_l
-    g_dl = (2.0 * g_r2 * t) * q - (dl_dt / dd) * (o_l + (2.0 * t) * d_l)
+    g_dl = (2.0 * g_r2 * t) * q - (dl_dt / dd) * (q + t * d_l)  # o_l + 2 t d_l = q + t d_l
     wp.atomic_add(g_w2l, gid, wp.outer(g_ol, v) + wp.outer(g_dl, d))
     wp.atomic_add(g_mean, gid, -(wp.transpose(w2l) * g_ol))
