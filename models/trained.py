@@ -81,6 +81,20 @@ def _read_section(cls, data, where: str):
         raise ValueError(f"{where}: {e}") from None
 
 
+def _legacy_tracer(data):
+    """Tracer settings written before the traversal became one option (commit b9fab46): the two booleans
+    become ``traversal``, and the old hard replay ceiling (4096) is dropped. Every traversal blends the same
+    hits in the same order, so this never changes an image."""
+    if not isinstance(data, dict) or not {"repeated_kbuffer", "ordered_traversal"} & set(data):
+        return data
+    data = dict(data)
+    kbuffer, ordered = data.pop("repeated_kbuffer", False), data.pop("ordered_traversal", False)
+    data.setdefault("traversal", "kbuffer" if kbuffer else "ordered" if ordered else "interval")
+    if data.get("max_replay_capacity") == 4096:
+        data["max_replay_capacity"] = None
+    return data
+
+
 def read_settings(path: str | Path) -> ModelSettings:
     """The settings of the model folder ``path`` (or of the folder of a gaussians.ply). A folder without
     ``model.yaml`` (made before models described themselves) gets the defaults, with a warning."""
@@ -95,7 +109,8 @@ def read_settings(path: str | Path) -> ModelSettings:
     colour = data.get("colour", COLOUR)
     if colour != COLOUR:
         raise ValueError(f"{file}: colour {colour!r} is not supported (expected {COLOUR!r})")
-    return ModelSettings(tracer=_read_section(TracerConfig, data.get("tracer"), f"{file} tracer"),
+    return ModelSettings(tracer=_read_section(TracerConfig, _legacy_tracer(data.get("tracer")),
+                                                f"{file} tracer"),
                          path=_read_section(PathConfig, data.get("path"), f"{file} path"),
                          colour=colour, units=data.get("units"), training=data.get("training") or {},
                          source=str(file))

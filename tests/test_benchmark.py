@@ -41,7 +41,20 @@ def test_quick_benchmark_writes_complete_json(tmp_path, capsys):
     assert 0 <= row["mean_transmittance"] <= 1
     assert row["ordered_hits_found_per_ray"] <= row["accepted_per_ray"]
     assert set(row["targets_met"]) >= set(TARGETS)
-    assert "fwd+bwd ms" in capsys.readouterr().out
+    # the scene types: our default traversal blends what the single traversal blends, examines fewer Gaussians
+    # than exist along the rays on the deep scenes, and Mitsuba rendered the same rays
+    assert [r["scene"] for r in data["scenes"]] == ["room", "deep", "dense_room", "million"]
+    for r in data["scenes"]:
+        assert r["same_as_single"], r["scene"]
+        for key in ("forward_ms", "single_forward_ms", "mitsuba_ms", "ours_over_mitsuba", "fused_over_forward",
+                    "candidates_per_blended", "mitsuba_mean_abs_diff"):
+            assert math.isfinite(r[key]) and r[key] > 0, (r["scene"], key)
+        assert r["hits_found_per_ray"] <= r["accepted_per_ray"] + 1e-9
+        assert r["mitsuba_mean_abs_diff"] < 0.2  # the same Gaussians (Mitsuba composites in shell-entry order)
+    deep = next(r for r in data["scenes"] if r["scene"] == "deep")
+    assert deep["candidates_per_blended"] < deep["single_candidates_per_blended"]
+    printed = capsys.readouterr().out
+    assert "fwd+bwd ms" in printed and "ours/mi" in printed
 
 
 def test_cli_rejects_bad_lists():
@@ -49,5 +62,7 @@ def test_cli_rejects_bad_lists():
         parse_args(["tracer", "--sizes", "a,b"])
     with pytest.raises(ValueError, match="sizes"):
         parse_args(["tracer", "--sizes", "0"])
+    with pytest.raises(ValueError, match=r"unknown scene type\(s\) \['cave'\]"):
+        parse_args(["tracer", "--scenes", "room,cave"])
     _, cfg, _ = parse_args(["tracer", "--sizes", "1000", "--res", "8", "--threads", "1"])
     assert cfg.sizes == [1000] and cfg.resolutions == [8] and cfg.threads == [1]

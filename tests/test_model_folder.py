@@ -145,3 +145,19 @@ def test_model_folder_errors(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         settings = read_settings(tmp_path / "m" / "gaussians.ply")
     assert settings.tracer == TracerConfig() and "no model.yaml" in caplog.text
+
+
+def test_model_yaml_from_before_the_traversal_option_still_loads(tmp_path):
+    """A model.yaml written when the traversal was two booleans (repeated_kbuffer / ordered_traversal) and
+    replay growth had a 4096 ceiling loads with the equivalent traversal and no ceiling."""
+    from models.gaussians import random_gaussians
+
+    g = random_gaussians(10, torch.Generator().manual_seed(0))
+    save_model(tmp_path / "m", g, ModelSettings())
+    old = {"kernel_p": 2, "replay_capacity": 64, "max_replay_capacity": 4096, "repeated_kbuffer": False,
+           "ordered_traversal": False}
+    for flags, traversal in (({}, "interval"), ({"repeated_kbuffer": True}, "kbuffer"),
+                             ({"ordered_traversal": True}, "ordered")):
+        (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "tracer": {**old, **flags}}))
+        tracer = read_settings(tmp_path / "m").tracer
+        assert (tracer.traversal, tracer.kernel_p, tracer.max_replay_capacity) == (traversal, 2, None)

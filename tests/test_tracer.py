@@ -5,6 +5,7 @@ Rays with a decision within float32 reach of flipping (alpha vs alpha_min, T vs 
 order of two hits) are excluded; `reference_trace(return_ambiguous=True)` flags them.
 """
 
+import math
 import os
 import random
 
@@ -46,30 +47,49 @@ def scene_and_rays(seed: int, n: int = 300, res: int = 32, scale: float = 0.15):
     return gs, origins, dirs
 
 
-def compare_forward(out, ref, amb, seed, atol=FWD_ATOL):
+def assert_hit_counts(out, ref, keep, cfg: TracerConfig, seed=None):
+    """Blended counts equal. The single / k-buffer traversals count every accepted hit; the early-stopping ones
+    (interval, ordered) count the hits found before they stopped: the same truncation (tail rule), never more
+    hits than the reference, and all of them where the ray was not truncated."""
+    assert torch.equal(out.blended_count[keep], ref.blended_count[keep]), f"seed {seed}: blended counts differ"
+    if cfg.traversal in ("single", "kbuffer"):
+        assert torch.equal(out.hit_count[keep], ref.hit_count[keep]), f"seed {seed}: hit counts differ"
+        return
+    truncated = out.hit_count > out.blended_count
+    assert torch.equal(truncated[keep], (ref.hit_count > ref.blended_count)[keep]), f"seed {seed}: tail rule differs"
+    assert (out.hit_count[keep] <= ref.hit_count[keep]).all(), f"seed {seed}: more hits than exist"
+    assert torch.equal(out.hit_count[keep & ~truncated], ref.hit_count[keep & ~truncated]), f"seed {seed}"
+
+
+def compare_forward(out, ref, amb, seed, cfg: TracerConfig, atol=FWD_ATOL):
     keep = ~amb
     assert keep.float().mean() > 0.9, f"seed {seed}: too many ambiguous rays ({int(amb.sum())})"
     for name in OUTPUTS:
         a, b = getattr(out, name).double()[keep], getattr(ref, name)[keep]
         err = (a - b).abs().max().item() if a.numel() else 0.0
         assert err < atol, f"seed {seed}: {name} max abs error {err:.3g}"
-    assert torch.equal(out.hit_count[keep], ref.hit_count[keep]), f"seed {seed}: hit counts differ"
-    assert torch.equal(out.blended_count[keep], ref.blended_count[keep]), f"seed {seed}: blended counts differ"
+    assert_hit_counts(out, ref, keep, cfg, seed)
 
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("variant", [
-    {}, {"kernel_p": 1}, {"world_aabb_only": True}, {"repeated_kbuffer": True, "k": 4},
+    {}, {"kernel_p": 1}, {"world_aabb_only": True}, {"traversal": "kbuffer", "k": 4}, {"traversal": "single"},
     {"k": 3, "transmittance_threshold": 0.001}, {"t_min": 2.8},
+    {"window": 1e-3}, {"window": 10.0}, {"replay_capacity": 3},  # interval: many windows, one, full windows
 ])
 def test_forward_matches_reference(device, variant):
-    seed = fresh_seed()
-    gs, origins, dirs = scene_and_rays(seed)
     cfg = TracerConfig(**variant)
+    seed = fresh_seed()
+    for _ in range(5):  # a scene with > 10% of its rays within float32 reach of a flipped decision (seen: ~1 in
+        # 150 seeds with kernel_p 1) cannot be compared; draw another
+        gs, origins, dirs = scene_and_rays(seed)
+        ref, amb = reference_trace(origins, dirs, gs.to(dtype=torch.float64), cfg, return_ambiguous=True,
+                                   ambiguity_eps=1e-5)
+        if amb.float().mean() <= 0.1:
+            break
+        seed += 1
     out = Tracer(cfg, device).trace(origins, dirs, gs)
-    ref, amb = reference_trace(origins, dirs, gs.to(dtype=torch.float64), cfg, return_ambiguous=True,
-                               ambiguity_eps=1e-5)
-    compare_forward(out, ref, amb, seed)
+    compare_forward(out, ref, amb, seed, cfg)
     assert out.blended_count.float().mean() > 2, "scene too sparse to test blending"
     assert (out.blended_count < out.hit_count).any(), "no ray reached the transmittance threshold"
     assert (out.candidates >= out.obb_candidates).all() and (out.obb_candidates >= out.hit_count).all()
@@ -88,7 +108,7 @@ def _assert_grads_close(gk: Gaussians, gr: Gaussians, seed):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("variant", [{}, {"kernel_p": 1}, {"repeated_kbuffer": True, "k": 4}])
+@pytest.mark.parametrize("variant", [{}, {"kernel_p": 1}, {"traversal": "kbuffer", "k": 4}])
 def test_gradients_match_reference_autograd(device, variant):
     seed = fresh_seed()
     gs, origins, dirs = scene_and_rays(seed, n=200, res=24)
@@ -148,7 +168,7 @@ def test_one_and_two_threads_identical():
         assert err < 1e-5, f"seed {seed}: grad {name} differs by {err:.3g} (relative)"
 
 
-@pytest.mark.parametrize("variant", [{}, {"repeated_kbuffer": True, "k": 2}])
+@pytest.mark.parametrize("variant", [{}, {"traversal": "kbuffer", "k": 2}])
 def test_replay_overflow_grows_and_reruns(variant):
     seed = fresh_seed()
     gs, origins, dirs = scene_and_rays(seed, n=300, res=16)
@@ -158,8 +178,9 @@ def test_replay_overflow_grows_and_reruns(variant):
     g = gs.to().requires_grad_()
     out = tiny.trace(origins, dirs, g)
     assert out.overflow_rays > 0 and tiny.capacity > 2 and out.replay_capacity == tiny.capacity
-    for name in OUTPUTS + ["hit_count", "blended_count"]:
+    for name in OUTPUTS + ["blended_count"]:
         assert torch.equal(getattr(out, name), getattr(big, name)), name
+    assert torch.equal(out.hit_count > out.blended_count, big.hit_count > big.blended_count)  # the tail rule
     out.diffuse.sum().backward()
     assert torch.isfinite(g.means.grad).all() and g.means.grad.abs().sum() > 0
     # fused path re-runs from scratch: gradients equal to the roomy tracer's
@@ -170,27 +191,113 @@ def test_replay_overflow_grows_and_reruns(variant):
     assert la.item() == pytest.approx(lb.item(), rel=1e-6)
     torch.testing.assert_close(ga.means.grad, gb.means.grad, rtol=1e-5, atol=1e-7)
     with pytest.raises(RuntimeError, match="max_replay_capacity"):
-        Tracer(TracerConfig(replay_capacity=1, max_replay_capacity=2, **variant)).trace(origins, dirs, gs)
+        Tracer(TracerConfig(replay_capacity=2, max_replay_capacity=3, **variant)).trace(origins, dirs, gs)
 
 
 @pytest.mark.parametrize("ordered", [False, True])
 def test_refit_after_moving_equals_fresh_build_and_count_change_rebuilds(ordered):
     seed = fresh_seed()
     gs, origins, dirs = scene_and_rays(seed, n=200, res=16)
-    tracer = Tracer(TracerConfig(ordered_traversal=ordered))
+    tracer = Tracer(TracerConfig(traversal="ordered" if ordered else "interval"))
     tracer.trace(origins, dirs, gs)
     with torch.no_grad():
         gs.means += 0.1          # in place, as an optimiser step: detected via tensor versions
         gs.log_scales += 0.2
     moved = tracer.trace(origins, dirs, gs)
     assert not tracer.bvh.last_was_rebuild
-    fresh = Tracer(TracerConfig(ordered_traversal=ordered)).trace(origins, dirs, gs)
+    fresh = Tracer(TracerConfig(traversal="ordered" if ordered else "interval")).trace(origins, dirs, gs)
     # (ordered: hits found before stopping depend on the tree, which a refit keeps)
     for name in OUTPUTS + ["blended_count"] + ([] if ordered else ["hit_count"]):
         assert torch.equal(getattr(moved, name), getattr(fresh, name)), name
     fewer = Gaussians(**{k: v[:150] for k, v in gs.params().items()})
     tracer.trace(origins, dirs, fewer)
     assert tracer.bvh.last_was_rebuild and tracer.bvh.count == 150
+
+
+# ---------------------------------------------------------------- scene types (issue: a ray's cost follows what it sees)
+def _rays_inside(res: int, origin, look, fov: float = 1.0):
+    """res x res unit rays of a camera at ``origin`` looking towards ``look``."""
+    fwd = torch.nn.functional.normalize(torch.tensor(look, dtype=torch.float32), dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(fwd, torch.tensor([0.0, 1.0, 0.0])), dim=0)
+    up = torch.linalg.cross(right, fwd)
+    u = torch.linspace(-fov / 2, fov / 2, res)
+    y, x = torch.meshgrid(u, u, indexing="ij")
+    dirs = torch.nn.functional.normalize(x.reshape(-1, 1) * right + y.reshape(-1, 1) * up + fwd, dim=1)
+    return torch.tensor(origin, dtype=torch.float32).expand_as(dirs).contiguous(), dirs
+
+
+def scene_type(name: str, seed: int):
+    """Small versions of the benchmark's scene types: (Gaussians, origins, dirs)."""
+    from models.gaussians import room_gaussians
+
+    g = torch.Generator().manual_seed(seed)
+    if name == "room":  # walls seen from inside (the benchmark scene)
+        return (room_gaussians(3000, g), *_rays_inside(12, (0.1, -0.05, 0.2), (0.3, 0.1, -1.0)))
+    if name == "deep":  # small Gaussians filling the frustum: each ray accepts ~50 and blends a few
+        return (random_gaussians(4000, g, extent=1.0, scale=0.04), *_rays_inside(12, (0.0, 0.0, -1.6), (0, 0, 1), 0.5))
+    if name == "dense_init":  # walls at dense-initialisation opacity (~0.1): tens of blended hits per ray
+        return (room_gaussians(3000, g, opacity_logit_mean=-2.2), *_rays_inside(12, (0.0, 0.2, 0.3), (0.2, -0.3, -1)))
+    # "overlap": large overlapping Gaussians, hundreds of accepted hits per ray
+    gs = random_gaussians(1500, g, extent=1.0, scale=0.5)
+    gs.opacity_logits = gs.opacity_logits - 1.0
+    return (gs, *_rays_inside(12, (0.0, 0.0, -3.0), (0, 0, 1), 0.4))
+
+
+@pytest.mark.parametrize("traversal", ["interval", "ordered", "single", "kbuffer"])
+@pytest.mark.parametrize("kind", ["room", "deep", "dense_init", "overlap"])
+def test_scene_types_match_reference(kind, traversal):
+    """Every traversal blends exactly the reference's hits on every scene type (fresh seeds): outputs, counts,
+    the tail rule and gradients; the early-stopping traversals examine fewer Gaussians than exist on the ray."""
+    seed = fresh_seed()
+    gs, origins, dirs = scene_type(kind, seed)
+    cfg = TracerConfig(traversal=traversal)
+    gk, gr = gs.to().requires_grad_(), gs.to(dtype=torch.float64).requires_grad_()
+    ref, amb = reference_trace(origins, dirs, gr, cfg, return_ambiguous=True, ambiguity_eps=1e-5,
+                               ambiguity_scope="blended")
+    out = Tracer(cfg).trace(origins, dirs, gk)
+    keep = ~amb
+    assert keep.float().mean() > 0.8, f"seed {seed}: too many ambiguous rays ({int(amb.sum())})"
+    for name in OUTPUTS:
+        err = (getattr(out, name).double() - getattr(ref, name))[keep].abs().max().item()
+        assert err < FWD_ATOL, f"seed {seed}: {name} max abs error {err:.3g}"
+    assert torch.equal(out.blended_count[keep], ref.blended_count[keep]), f"seed {seed}: blended counts differ"
+    truncated = out.hit_count > out.blended_count
+    assert torch.equal(truncated[keep], (ref.hit_count > ref.blended_count)[keep]), f"seed {seed}: tail rule"
+    if traversal in ("single", "kbuffer"):  # every accepted hit counted (a flip far behind the threshold: +-1)
+        assert ((out.hit_count - ref.hit_count)[keep].abs() <= 1).all(), f"seed {seed}: hit counts differ"
+    else:
+        assert (out.hit_count[keep] <= ref.hit_count[keep] + 1).all(), f"seed {seed}: more hits than exist"
+    assert ref.blended_count.float().mean() > 1.5, f"{kind}: scene too sparse to test blending"
+    if traversal in ("interval", "ordered") and kind in ("deep", "overlap"):
+        assert (out.hit_count < ref.hit_count).float().mean() > 0.5, f"seed {seed}: {kind}: rays did not stop early"
+    w = _weights(ref, amb, torch.Generator().manual_seed(seed))
+    sum((getattr(out, k).double() * w[k]).sum() for k in OUTPUTS).backward()
+    sum((getattr(ref, k) * w[k]).sum() for k in OUTPUTS).backward()
+    _assert_grads_close(gk, gr, seed)
+
+
+def test_ten_thousand_hits_on_one_ray_render_correctly():
+    """No ceiling on hits per ray: 10,000 Gaussians on one line, all blended (threshold 0): the replay buffer
+    grows to hold them (no error), and the result is the reference's."""
+    n = 10_000
+    g = torch.Generator().manual_seed(n)
+    f = torch.float64
+    means = torch.zeros(n, 3, dtype=f)
+    means[:, 2] = torch.linspace(0.0, 20.0, n, dtype=f)
+    gs = Gaussians(means=means, quats=torch.tensor([[1.0, 0, 0, 0]], dtype=f).repeat(n, 1),
+                   log_scales=torch.full((n, 3), math.log(0.05), dtype=f),
+                   opacity_logits=torch.full((n,), math.log(3e-4 / (1 - 3e-4)), dtype=f),
+                   diffuse=torch.rand(n, 3, generator=g, dtype=f), normals=torch.rand(n, 3, generator=g, dtype=f),
+                   roughness=torch.rand(n, generator=g, dtype=f), f0=torch.rand(n, 3, generator=g, dtype=f))
+    origins, dirs = torch.tensor([[0.0, 0.0, -1.0], [0.01, 0.0, -1.0]]), torch.tensor([[0.0, 0.0, 1.0]] * 2)
+    cfg = TracerConfig(transmittance_threshold=0.0, alpha_min=1e-4, num_threads=1)
+    out = Tracer(cfg).trace(origins, dirs, gs.to(dtype=torch.float32))
+    ref = reference_trace(origins, dirs, gs, cfg)
+    assert torch.equal(out.hit_count, ref.hit_count) and int(out.hit_count.min()) == n
+    assert torch.equal(out.blended_count, out.hit_count) and out.replay_capacity >= n
+    for name in ("diffuse", "transmittance", "depth"):
+        err = (getattr(out, name).double() - getattr(ref, name)).abs().max().item()
+        assert err < 1e-3, (name, err)  # float32 over 10,000 products: the rounding bound of test_stability
 
 
 # ---------------------------------------------------------------- edge cases
@@ -212,7 +319,7 @@ def _check_edge(gs64: Gaussians, origins, dirs, cfg=None, device="cpu"):
         a = getattr(out, name)
         assert torch.isfinite(a).all(), name
         assert (a.double() - getattr(ref, name)).abs().max() < FWD_ATOL, name
-    assert torch.equal(out.hit_count, ref.hit_count)
+    assert_hit_counts(out, ref, torch.ones_like(out.hit_count, dtype=torch.bool), cfg)
     (out.diffuse.sum() + out.depth.sum() + out.transmittance.sum()).backward()
     for name, v in gk.params().items():
         assert v.grad is not None and torch.isfinite(v.grad).all(), name
@@ -257,7 +364,7 @@ def test_opacity_at_clamp():
     origins = torch.tensor([[0.0, 0.0, -3.0], [0.01, 0.0, -3.0]])
     dirs = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     out = _check_edge(gs, origins, dirs)
-    assert out.blended_count[0] == 1 and out.hit_count[0] == 3 and out.transmittance[0] < 1e-3
+    assert out.blended_count[0] == 1 and out.hit_count[0] > 1 and out.transmittance[0] < 1e-3  # truncated
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -347,7 +454,7 @@ def test_prepare_kernel_matches_torch_activations_and_bounds_contain_boxes():
 def test_ordered_traversal_matches_reference_and_stops_early(device, variant):
     seed = fresh_seed()
     gs, origins, dirs = scene_and_rays(seed)
-    cfg = TracerConfig(ordered_traversal=True, **variant)
+    cfg = TracerConfig(traversal="ordered", **variant)
     gk, gr = gs.to().requires_grad_(), gs.to(dtype=torch.float64).requires_grad_()
     out = Tracer(cfg, device).trace(origins, dirs, gk)
     ref, amb = reference_trace(origins, dirs, gr, cfg, return_ambiguous=True, ambiguity_eps=1e-5)
@@ -370,6 +477,6 @@ def test_ordered_traversal_matches_reference_and_stops_early(device, variant):
     _assert_grads_close(gk, gr, seed)
 
 
-def test_ordered_traversal_rejects_kbuffer_combination():
-    with pytest.raises(ValueError, match="exclusive"):
-        TracerConfig(ordered_traversal=True, repeated_kbuffer=True)
+def test_unknown_traversal_is_refused_by_name():
+    with pytest.raises(ValueError, match="traversal must be one of interval, single, kbuffer, ordered, got 'bvh'"):
+        TracerConfig(traversal="bvh")

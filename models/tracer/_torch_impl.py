@@ -47,13 +47,18 @@ def evaluate_hits(origins, dirs, means, w2l, opacities, config: TracerConfig):
 
 def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussians,
                     config: TracerConfig | None = None, ray_chunk: int = 64,
-                    return_ambiguous: bool = False, ambiguity_eps: float = 1e-4):
+                    return_ambiguous: bool = False, ambiguity_eps: float = 1e-4, ambiguity_scope: str = "all"):
     """Trace R rays through all Gaussians. origins, dirs: [R, 3] (any non-zero dirs).
 
     Returns TraceOutput; with return_ambiguous also a bool [R] marking rays with a
     decision (alpha vs alpha_min, T vs threshold, order of two hits, t vs t_min, box)
     within ambiguity_eps of flipping, where a float32 kernel may legitimately differ.
+    ambiguity_scope "blended": only the decisions up to the first accepted hit left unblended count (beyond it
+    a flip changes neither the outputs nor the tail rule, only the count of accepted hits); for rays with
+    hundreds of hits, where some near-tie far behind the threshold is all but certain.
     """
+    if ambiguity_scope not in ("all", "blended"):
+        raise ValueError(f"ambiguity_scope must be 'all' or 'blended', got {ambiguity_scope!r}")
     config = config or TracerConfig()
     dtype = gaussians.dtype
     origins = origins.to(dtype)
@@ -65,9 +70,9 @@ def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussi
     parts = []
     for start in range(0, origins.shape[0], ray_chunk):
         parts.append(_trace_chunk(origins[start:start + ray_chunk], dirs[start:start + ray_chunk],
-                                  means, w2l, opac, feats, config, ambiguity_eps))
+                                  means, w2l, opac, feats, config, ambiguity_eps, ambiguity_scope))
     if not parts:  # no rays
-        parts.append(_trace_chunk(origins, dirs, means, w2l, opac, feats, config, ambiguity_eps))
+        parts.append(_trace_chunk(origins, dirs, means, w2l, opac, feats, config, ambiguity_eps, ambiguity_scope))
     cat = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
     out = TraceOutput(
         diffuse=cat["out"][:, 0:3], normal=cat["out"][:, 3:6], roughness=cat["out"][:, 6],
@@ -77,7 +82,7 @@ def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussi
     return (out, cat["ambiguous"]) if return_ambiguous else out
 
 
-def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps):
+def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps, scope="all"):
     r, n = origins.shape[0], means.shape[0]
     t, alpha, valid, raw_alpha, box, s = evaluate_hits(origins, dirs, means, w2l, opac, config)
     # sort accepted hits by t; rejected ones go to the end with alpha 0
@@ -100,12 +105,20 @@ def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps):
     out = acc * scale[:, None]
 
     with torch.no_grad():
-        cand = (s[None] > 0) & (t > config.t_min - eps)
+        relevant = torch.ones_like(valid)  # [R, N] hits whose decisions can change outputs or the tail rule
+        relevant_s = torch.ones_like(valid_s)
+        if scope == "blended":
+            first_open = n_blended.long().clamp(max=n - 1)
+            boundary = torch.where(truncated, key_sorted.gather(1, first_open[:, None])[:, 0],
+                                   torch.full_like(t_end, float("inf")))
+            relevant = t.detach() <= boundary[:, None] * (1 + eps) + eps
+            relevant_s = torch.arange(n, device=t.device)[None] <= n_blended[:, None].long()
+        cand = (s[None] > 0) & (t > config.t_min - eps) & relevant
         amb = (cand & ((raw_alpha - config.alpha_min).abs() < eps)).any(1)
         amb |= (cand & ((box - s[None]).abs() < eps) & (raw_alpha > config.alpha_min - eps)).any(1)
-        amb |= ((raw_alpha > config.alpha_min) & ((t - config.t_min).abs() < eps)).any(1)
-        amb |= (valid_s & ((trans - config.transmittance_threshold).abs() < eps)).any(1)
+        amb |= ((raw_alpha > config.alpha_min) & ((t - config.t_min).abs() < eps) & relevant).any(1)
+        amb |= (valid_s & relevant_s & ((trans - config.transmittance_threshold).abs() < eps)).any(1)
         if n > 1:
             gap = (key_sorted[:, 1:] - key_sorted[:, :-1]).abs()
-            amb |= (valid_s[:, 1:] & (gap < eps * (1 + key_sorted[:, :-1].abs()))).any(1)
+            amb |= (valid_s[:, 1:] & relevant_s[:, 1:] & (gap < eps * (1 + key_sorted[:, :-1].abs()))).any(1)
     return {"out": out, "t_end": t_end, "hits": hits, "blended": n_blended, "ambiguous": amb}

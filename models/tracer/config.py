@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from models.settings import setting
 
+TRAVERSALS = ("interval", "single", "kbuffer", "ordered")  # index = TraceParams.traversal
+
 
 @dataclass
 class TracerConfig:
@@ -22,20 +24,24 @@ class TracerConfig:
     t_min: float = setting(0.0, "hits at ray parameter t <= t_min are ignored (near distance; reflection offset)",
                            minimum=0)
     k: int = setting(16, "hits taken per integration round (k nearest beyond the last taken)", minimum=1)
-    replay_capacity: int = setting(64, "replay buffer slots per ray at start (accepted hits stored for "
-                                   "integration and backward)", minimum=1)
-    max_replay_capacity: int = setting(4096, "hard ceiling when the replay buffer grows after an overflow; beyond "
-                                       "it trace() raises", minimum=1)
+    traversal: str = setting("interval", "interval: windows of the ray parameter front to back, stopping once "
+                             "the ray is done (the method); single: one traversal gathering every accepted hit "
+                             "(ablation); kbuffer: 3DGRT-style re-traversal per round of k hits (ablation); "
+                             "ordered: own BVH traversed best-first (ablation)",
+                             enum=["interval", "single", "kbuffer", "ordered"])
+    window: float = setting(1.0, "interval traversal: first window length, in median Gaussian box diagonals (then "
+                            "sized per ray from the optical depth seen so far)", exclusiveMinimum=0)
+    replay_capacity: int = setting(64, "replay buffer slots per ray at start (the blended hits, kept for the "
+                                   "backward, plus the window being sorted); grows when a ray needs more",
+                                   minimum=2)
+    max_replay_capacity: int | None = setting(None, "optional ceiling on the replay growth: a ray that needs more "
+                                              "slots raises (null: no ceiling, memory permitting)", minimum=2)
     num_threads: int = setting(2, "CPU only: rays are split over this many Python threads (one Warp launch each)",
                                runtime=True, minimum=1)
-    repeated_kbuffer: bool = setting(False, "ablation: 3DGRT-style integration, re-traversing the BVH for each round "
-                                     "of k nearest hits")
     world_aabb_only: bool = setting(False, "ablation: skip the per-candidate oriented-box test (world AABB only)")
     always_rebuild: bool = setting(False, "ablation: rebuild the BVH on every update() instead of refitting it")
-    ordered_traversal: bool = setting(False, "own Morton-ordered BVH traversed front to back, stopping once "
-                                      "T < threshold (excludes repeated_kbuffer)")
-    ordered_leaf_size: int = setting(4, "Gaussians per leaf of the ordered BVH", minimum=1)
-    ordered_heap_size: int = setting(128, "node-heap entries per ray of the ordered traversal; a ray that needs more "
+    ordered_leaf_size: int = setting(4, "traversal ordered: Gaussians per leaf of its BVH", minimum=1)
+    ordered_heap_size: int = setting(128, "traversal ordered: node-heap entries per ray; a ray that needs more "
                                      "falls back to the single traversal (same result, no early exit)", minimum=2)
 
     def __post_init__(self) -> None:
@@ -47,13 +53,16 @@ class TracerConfig:
             raise ValueError(f"transmittance_threshold must be in [0, 1), got {self.transmittance_threshold}")
         if self.k < 1:
             raise ValueError(f"k must be >= 1, got {self.k}")
-        if self.replay_capacity < 1 or self.max_replay_capacity < self.replay_capacity:
+        if self.replay_capacity < 2 or (self.max_replay_capacity is not None
+                                        and self.max_replay_capacity < self.replay_capacity):
             raise ValueError(
-                f"need 1 <= replay_capacity <= max_replay_capacity, got "
+                f"need 2 <= replay_capacity <= max_replay_capacity, got "
                 f"{self.replay_capacity}, {self.max_replay_capacity}"
             )
-        if self.ordered_traversal and self.repeated_kbuffer:
-            raise ValueError("ordered_traversal and repeated_kbuffer are exclusive; choose one")
+        if self.traversal not in TRAVERSALS:
+            raise ValueError(f"traversal must be one of {', '.join(TRAVERSALS)}, got {self.traversal!r}")
+        if not self.window > 0:
+            raise ValueError(f"window must be > 0, got {self.window}")
         if self.ordered_heap_size < 2:
             raise ValueError(f"ordered_heap_size must be >= 2, got {self.ordered_heap_size}")
         if self.ordered_leaf_size < 1:

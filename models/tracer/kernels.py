@@ -1,8 +1,8 @@
 """Tracer kernel entry points: one source for CPU and CUDA.
 
-forward_kernel: per ray, dispatches to the single traversal (kernels_single, the method),
-the repeated k-buffer ablation (kernels_kbuffer) or the ordered traversal (kernels_ordered,
-stretch). backward_kernel: reverse replay of the sorted replay-buffer prefix
+forward_kernel: per ray, dispatches to the t-interval traversal (kernels_interval, the default)
+or an ablation: the single traversal (kernels_single), the repeated k-buffer (kernels_kbuffer), the
+best-first ordered BVH (kernels_ordered). backward_kernel: reverse replay of the sorted replay-buffer prefix
 (kernels_backward). fused_kernel: forward, per-pixel L1 loss gradient and backward in one
 thread per ray. Semantics (tail rule, outputs) are those of `output.TraceOutput`.
 """
@@ -12,6 +12,7 @@ from __future__ import annotations
 import warp as wp
 
 from models.tracer.kernels_backward import backward_ray
+from models.tracer.kernels_interval import forward_interval
 from models.tracer.kernels_kbuffer import forward_kbuffer
 from models.tracer.kernels_ordered import forward_ordered
 from models.tracer.kernels_single import forward_single
@@ -30,12 +31,14 @@ from models.tracer.structs import (
 @wp.func
 def forward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
                 outs: RayOutputs, ob: OrderedBvh) -> int:
-    if prm.ordered != 0:
+    if prm.traversal == 0:
+        return forward_interval(ray, o, d, g, prm, rep, outs)
+    if prm.traversal == 3:
         status = forward_ordered(ray, o, d, g, prm, rep, outs, ob)
         if status >= 0:
             return status
         # node heap overflow: this ray falls back to the single traversal (uses the wp.Bvh)
-    if prm.repeated_kbuffer != 0:
+    if prm.traversal == 2:
         return forward_kbuffer(ray, o, d, g, prm, rep, outs)
     return forward_single(ray, o, d, g, prm, rep, outs)
 

@@ -1,4 +1,4 @@
-"""Front-to-back ordered traversal with early termination (stretch; config.ordered_traversal).
+"""Front-to-back ordered traversal with early termination (ablation; TracerConfig.traversal = "ordered").
 
 Best-first over the ordered BVH (binary min-heap of nodes keyed by their entry t). A hit's
 max-response point lies in its Gaussian's box, inside every ancestor's AABB, so its t is
@@ -43,20 +43,72 @@ def safe_inv(x: float) -> float:
 
 
 @wp.func
+def heap_push(keys: wp.array(dtype=float), nodes: wp.array(dtype=wp.int32), size: int, key: float, node: int):
+    """Push (key, node) into the binary min-heap of ``size`` entries (the caller checked the capacity)."""
+    j = size
+    keys[j] = key
+    nodes[j] = node
+    rising = int(1)
+    while rising != 0:
+        rising = 0
+        if j > 0:
+            parent = (j - 1) // 2
+            if keys[parent] > keys[j]:
+                kt = keys[parent]
+                nt = nodes[parent]
+                keys[parent] = keys[j]
+                nodes[parent] = nodes[j]
+                keys[j] = kt
+                nodes[j] = nt
+                j = parent
+                rising = 1
+
+
+@wp.func
+def heap_pop(keys: wp.array(dtype=float), nodes: wp.array(dtype=wp.int32), size: int):
+    """Remove the minimum of the heap of ``size`` entries (read it from keys[0] / nodes[0] first)."""
+    last = size - 1
+    keys[0] = keys[last]
+    nodes[0] = nodes[last]
+    i = int(0)
+    moving = int(1)
+    while moving != 0:
+        moving = 0
+        smallest = i
+        if 2 * i + 1 < last:
+            if keys[2 * i + 1] < keys[smallest]:
+                smallest = 2 * i + 1
+        if 2 * i + 2 < last:
+            if keys[2 * i + 2] < keys[smallest]:
+                smallest = 2 * i + 2
+        if smallest != i:
+            kt = keys[smallest]
+            nt = nodes[smallest]
+            keys[smallest] = keys[i]
+            nodes[smallest] = nodes[i]
+            keys[i] = kt
+            nodes[i] = nt
+            i = smallest
+            moving = 1
+
+
+@wp.func
 def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
                     outs: RayOutputs, ob: OrderedBvh) -> int:
-    """Best-first traversal. Returns 0 on replay overflow (needed = twice the capacity) and
-    -1 when the node heap overflowed (the caller falls back to the single traversal)."""
+    """Best-first traversal. The node being expanded (``cur``) descends into its nearer child directly when no
+    deferred node is nearer, pushing only the farther child; the heap holds the deferred nodes. Unvisited
+    nodes = the heap and ``cur``, so stored hits before min(heap top, cur's entry) are final. Returns 0 on
+    replay overflow (needed = twice the capacity) and -1 when the node heap overflowed (the caller falls back
+    to the single traversal)."""
     inv_d = wp.vec3(safe_inv(d[0]), safe_inv(d[1]), safe_inv(d[2]))
     keys = ob.heap_keys[ray]
     nodes = ob.heap_nodes[ray]
     heap_cap = keys.shape[0]
     size = int(0)
-    root_t = box_entry(o, inv_d, ob.node_lo[0], ob.node_hi[0], prm.t_min)
-    if root_t < 1.0e29:
-        keys[0] = root_t
-        nodes[0] = 0
-        size = 1
+    cur = int(-1)
+    cur_t = box_entry(o, inv_d, ob.node_lo[0], ob.node_hi[0], prm.t_min)
+    if cur_t < 1.0e29:
+        cur = 0
     trans = float(1.0)
     c_diffuse = wp.vec3(0.0)
     c_normal = wp.vec3(0.0)
@@ -68,45 +120,27 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
     done = int(0)
     cand = int(0)
     obb = int(0)
-    nearest = float(3.0e38)   # smallest t among stored, not yet blended hits
     first_leaf = ob.n_leaves - 1
-    while size > 0:
+    while cur >= 0 or size > 0:
         if done != 0 and n > blended:
             break
-        node = nodes[0]
-        # pop the heap minimum (binary min-heap inlined: Warp passes vectors to funcs by value)
-        size -= 1
-        keys[0] = keys[size]
-        nodes[0] = nodes[size]
-        i = int(0)
-        moving = int(1)
-        while moving != 0:
-            moving = 0
-            smallest = i
-            if 2 * i + 1 < size:
-                if keys[2 * i + 1] < keys[smallest]:
-                    smallest = 2 * i + 1
-            if 2 * i + 2 < size:
-                if keys[2 * i + 2] < keys[smallest]:
-                    smallest = 2 * i + 2
-            if smallest != i:
-                kt = keys[smallest]
-                nt = nodes[smallest]
-                keys[smallest] = keys[i]
-                nodes[smallest] = nodes[i]
-                keys[i] = kt
-                nodes[i] = nt
-                i = smallest
-                moving = 1
+        if cur < 0:
+            cur = nodes[0]
+            cur_t = keys[0]
+            heap_pop(keys, nodes, size)
+            size -= 1
+        node = cur
+        cur = -1
+        cur_t = float(3.0e38)
         if node >= first_leaf:
             leaf = node - first_leaf
             for li in range(ob.leaf_size):
                 k = leaf * ob.leaf_size + li
                 if k < ob.count:
-                    gid = ob.order[k]
-                    if box_entry(o, inv_d, ob.lowers[gid], ob.uppers[gid], prm.t_min) < 1.0e29:
+                    # the leaf's records are contiguous (Morton order): no gather by Gaussian id
+                    if box_entry(o, inv_d, ob.sorted_lowers[k], ob.sorted_uppers[k], prm.t_min) < 1.0e29:
                         cand += 1
-                        h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max,
+                        h = eval_packed(o, d, ob.sorted_packed[k], prm.kernel_p, prm.alpha_min, prm.alpha_max,
                                         prm.t_min, prm.obb_test)
                         if h[2] > 0.0:
                             obb += 1
@@ -114,63 +148,58 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                             if n >= prm.capacity:
                                 outs.needed[ray] = 2 * prm.capacity
                                 return 0
-                            rep.ids[ray, n] = gid
-                            rep.t[ray, n] = h[0]
-                            rep.alpha[ray, n] = h[1]
+                            # insert into the pending hits [blended, n), kept sorted (hits arrive nearly in order)
+                            gid = ob.order[k]
+                            j = n
+                            while j > blended and hit_less(h[0], gid, rep.t[ray, j - 1], rep.ids[ray, j - 1]) != 0:
+                                rep.ids[ray, j] = rep.ids[ray, j - 1]
+                                rep.t[ray, j] = rep.t[ray, j - 1]
+                                rep.alpha[ray, j] = rep.alpha[ray, j - 1]
+                                j -= 1
+                            rep.ids[ray, j] = gid
+                            rep.t[ray, j] = h[0]
+                            rep.alpha[ray, j] = h[1]
                             n += 1
-                            nearest = wp.min(nearest, h[0])
         else:
-            for c in range(2):
-                child = 2 * node + 1 + c
-                tc = box_entry(o, inv_d, ob.node_lo[child], ob.node_hi[child], prm.t_min)
-                if tc < 1.0e29:
+            left = 2 * node + 1
+            tl = box_entry(o, inv_d, ob.node_lo[left], ob.node_hi[left], prm.t_min)
+            tr = box_entry(o, inv_d, ob.node_lo[left + 1], ob.node_hi[left + 1], prm.t_min)
+            near = left
+            t_near = tl
+            t_far = tr
+            if tr < tl:
+                near = left + 1
+                t_near = tr
+                t_far = tl
+            if t_far < 1.0e29:
+                if size >= heap_cap:
+                    return -1
+                heap_push(keys, nodes, size, t_far, 2 * left + 1 - near)
+                size += 1
+            if t_near < 1.0e29:
+                if size == 0 or t_near <= keys[0]:
+                    cur = near  # still the nearest unvisited node: descend without the heap
+                    cur_t = t_near
+                else:
                     if size >= heap_cap:
                         return -1
-                    j = size
-                    keys[j] = tc
-                    nodes[j] = child
+                    heap_push(keys, nodes, size, t_near, near)
                     size += 1
-                    rising = int(1)
-                    while rising != 0:
-                        rising = 0
-                        if j > 0:
-                            parent = (j - 1) // 2
-                            if keys[parent] > keys[j]:
-                                kt = keys[parent]
-                                nt = nodes[parent]
-                                keys[parent] = keys[j]
-                                nodes[parent] = nodes[j]
-                                keys[j] = kt
-                                nodes[j] = nt
-                                j = parent
-                                rising = 1
         if done == 0:
-            # stored hits before every pending node's entry (with a float margin) are final
-            bound = float(3.0e38)
+            # stored hits before every unvisited node's entry (with a float margin) are final
+            bound = cur_t
             if size > 0:
-                bound = keys[0] - 1.0e-5 * (1.0 + wp.abs(keys[0]))
-            scanning = int(1)
-            while scanning != 0 and blended < n and nearest < bound:
-                best = blended
-                t_best = rep.t[ray, blended]
-                id_best = rep.ids[ray, blended]
-                for m in range(blended + 1, n):
-                    if hit_less(rep.t[ray, m], rep.ids[ray, m], t_best, id_best) != 0:
-                        best = m
-                        t_best = rep.t[ray, m]
-                        id_best = rep.ids[ray, m]
+                bound = wp.min(bound, keys[0])
+            if bound < 1.0e38:
+                bound = bound - 1.0e-5 * (1.0 + wp.abs(bound))
+            # the pending hits [blended, n) are sorted: blend from the front while they are final
+            while done == 0 and blended < n and rep.t[ray, blended] < bound:
                 if trans < prm.trans_threshold:
                     done = 1
-                    scanning = 0
                 else:
-                    a = rep.alpha[ray, best]
-                    if best != blended:
-                        rep.ids[ray, best] = rep.ids[ray, blended]
-                        rep.t[ray, best] = rep.t[ray, blended]
-                        rep.alpha[ray, best] = rep.alpha[ray, blended]
-                        rep.ids[ray, blended] = id_best
-                        rep.t[ray, blended] = t_best
-                        rep.alpha[ray, blended] = a
+                    id_best = rep.ids[ray, blended]
+                    t_best = rep.t[ray, blended]
+                    a = rep.alpha[ray, blended]
                     w = trans * a
                     c_diffuse += w * g.diffuse[id_best]
                     c_normal += w * g.normal[id_best]
@@ -180,9 +209,6 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                     rep.trans[ray, blended] = trans
                     trans = trans * (1.0 - a)
                     blended += 1
-                    nearest = float(3.0e38)
-                    for m in range(blended, n):
-                        nearest = wp.min(nearest, rep.t[ray, m])
             if trans < prm.trans_threshold:
                 done = 1
     outs.candidates[ray] = cand

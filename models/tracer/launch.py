@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from models.tracer.ordered_bvh import OrderedBvh
-from models.tracer.structs import GaussianGrads, RayGrads, RayOutputs, Replay
+from models.tracer.structs import GaussianGrads, RayGrads, RayOutputs, Replay, vec16
 
 # RayOutputs field -> (Warp dtype, components)
 OUT_FIELDS = {
@@ -120,6 +120,9 @@ def empty_ordered(device: str) -> OrderedBvh:
     b.order = wp.zeros(1, dtype=wp.int32, device=device)
     b.lowers = wp.zeros(1, dtype=wp.vec3, device=device)
     b.uppers = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.sorted_lowers = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.sorted_uppers = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.sorted_packed = wp.zeros(1, dtype=vec16, device=device)
     b.n_leaves, b.leaf_size, b.count = 1, 1, 0
     b.heap_keys = wp.zeros((1, 1), dtype=float, device=device)
     b.heap_nodes = wp.zeros((1, 1), dtype=wp.int32, device=device)

@@ -1,4 +1,4 @@
-"""Own BVH for front-to-back ordered traversal (stretch; config.ordered_traversal).
+"""Own BVH for front-to-back ordered traversal (ablation; TracerConfig.traversal = "ordered").
 
 wp.bvh_query_ray visits leaves in no particular order, so a ray cannot stop early. This
 BVH is a complete binary tree (heap layout: children of node k are 2k+1, 2k+2) over leaves
@@ -14,6 +14,7 @@ import torch
 import warp as wp
 
 from models.tracer.interop import to_warp
+from models.tracer.structs import vec16
 
 
 @wp.struct
@@ -23,11 +24,24 @@ class OrderedBvh:
     order: wp.array(dtype=wp.int32)    # [N] Gaussian ids in Morton order
     lowers: wp.array(dtype=wp.vec3)    # [N] per-Gaussian world AABB (by Gaussian id)
     uppers: wp.array(dtype=wp.vec3)
+    sorted_lowers: wp.array(dtype=wp.vec3)  # [N] the same, in Morton order (a leaf's Gaussians contiguous)
+    sorted_uppers: wp.array(dtype=wp.vec3)
+    sorted_packed: wp.array(dtype=vec16)    # [N] packed traversal records (structs.vec16) in Morton order
     n_leaves: int                      # P, a power of two
     leaf_size: int                     # Gaussians per leaf (B)
     count: int                         # N
     heap_keys: wp.array2d(dtype=float)     # [R, H] per-ray node heap scratch (entry t)
     heap_nodes: wp.array2d(dtype=wp.int32)  # [R, H] per-ray node heap scratch (node index)
+
+
+@wp.kernel
+def gather_sorted_kernel(b: OrderedBvh, packed: wp.array(dtype=vec16)):
+    """The per-Gaussian records a traversal reads, copied into Morton order."""
+    k = wp.tid()
+    gid = b.order[k]
+    b.sorted_lowers[k] = b.lowers[gid]
+    b.sorted_uppers[k] = b.uppers[gid]
+    b.sorted_packed[k] = packed[gid]
 
 
 @wp.kernel
@@ -71,7 +85,7 @@ class OrderedBvhBuilder:
         self.leaf_size = leaf_size
         self.struct: OrderedBvh | None = None
 
-    def rebuild(self, lowers: wp.array, uppers: wp.array) -> None:
+    def rebuild(self, lowers: wp.array, uppers: wp.array, packed: wp.array) -> None:
         n = lowers.shape[0]
         centers = 0.5 * (lowers.numpy() + uppers.numpy())
         n_leaves = 1 << max(0, int(np.ceil(np.log2(max(1, -(-n // self.leaf_size))))))
@@ -80,12 +94,16 @@ class OrderedBvhBuilder:
         b.node_hi = wp.empty(2 * n_leaves - 1, dtype=wp.vec3, device=self.device)
         b.order = to_warp(torch.from_numpy(_morton_order(centers)), wp.int32, self.device)
         b.lowers, b.uppers = lowers, uppers
+        b.sorted_lowers = wp.empty(n, dtype=wp.vec3, device=self.device)
+        b.sorted_uppers = wp.empty(n, dtype=wp.vec3, device=self.device)
+        b.sorted_packed = wp.empty(n, dtype=vec16, device=self.device)
         b.n_leaves, b.leaf_size, b.count = n_leaves, self.leaf_size, n
         self.struct = b
-        self.refit()
+        self.refit(packed)
 
-    def refit(self) -> None:
+    def refit(self, packed: wp.array) -> None:
         b = self.struct
+        wp.launch(gather_sorted_kernel, dim=b.count, inputs=[b, packed], device=self.device)
         wp.launch(leaf_bounds_kernel, dim=b.n_leaves, inputs=[b], device=self.device)
         level = b.n_leaves // 2
         while level >= 1:

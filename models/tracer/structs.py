@@ -32,8 +32,12 @@ class TraceParams:
     k: int                    # hits per integration round
     capacity: int             # replay slots per ray
     obb_test: int             # 1: slab test against the oriented box before evaluating
-    repeated_kbuffer: int     # 1: 3DGRT-style re-traversal per round (ablation)
-    ordered: int              # 1: own BVH, front-to-back traversal with early termination (stretch)
+    traversal: int            # index into config.TRAVERSALS: 0 interval, 1 single, 2 kbuffer, 3 ordered
+    window: float             # interval: first window length (world units; divided by |d| per ray)
+    scene_lo: wp.vec3         # interval: the scene box (union of the Gaussians' world bounds)
+    scene_hi: wp.vec3
+    lowers: wp.array(dtype=wp.vec3)  # [N] the Gaussians' world bounds (the wp.Bvh's items)
+    uppers: wp.array(dtype=wp.vec3)
 
 
 @wp.struct

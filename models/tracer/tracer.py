@@ -21,7 +21,7 @@ from models.gaussians.scene import Gaussians
 from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
 from models.tracer.chain import chain_kernel
-from models.tracer.config import TracerConfig
+from models.tracer.config import TRAVERSALS, TracerConfig
 from models.tracer.interop import to_torch, to_warp
 from models.tracer.launch import (
     RAY_GRAD_FIELDS,
@@ -65,9 +65,12 @@ class Tracer:
         # (the ordered traversal keeps the wp.Bvh too: rays whose node heap overflows fall back to it)
         self.bvh = GaussianBvh(self.device)
         self.ordered = OrderedBvhBuilder(self.device, self.config.ordered_leaf_size) \
-            if self.config.ordered_traversal else None
+            if self.config.traversal == "ordered" else None
         self._no_ordered = empty_ordered(self.device)
         self.capacity = self.config.replay_capacity
+        self.scene_box = (wp.vec3(0.0), wp.vec3(0.0))
+        self.scene_diagonal = 1.0
+        self.box_diagonal = 1.0
         threads = self.config.num_threads if self.is_cpu else 1
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="tracer") if threads > 1 else None
         self._threads = threads
@@ -98,10 +101,26 @@ class Tracer:
                         run=lambda jobs: run_chunks(self._pool, jobs), n_chunks=self._threads)
         if self.ordered is not None and self.bvh.count > 0:
             if self.bvh.last_was_rebuild:
-                self.ordered.rebuild(self.bvh.lowers, self.bvh.uppers)
+                self.ordered.rebuild(self.bvh.lowers, self.bvh.uppers, self.bvh.packed)
             else:
-                self.ordered.refit()
+                self.ordered.refit(self.bvh.packed)
         self._scene_key = self._key(gaussians)
+        self._scene_box()
+
+    def _scene_box(self) -> None:
+        """The union of the Gaussians' world bounds (the interval traversal clips rays to it)."""
+        if self.bvh.count > 0:
+            lo = to_torch(self.bvh.lowers, torch.device("cpu")).amin(0)
+            hi = to_torch(self.bvh.uppers, torch.device("cpu")).amax(0)
+            self.scene_box = (wp.vec3(*lo.tolist()), wp.vec3(*hi.tolist()))
+            self.scene_diagonal = float((hi - lo).norm())
+            stride = max(1, self.bvh.count // 4096)  # a strided sample: cheap at every training step
+            lows = to_torch(self.bvh.lowers, torch.device("cpu"))[::stride]
+            highs = to_torch(self.bvh.uppers, torch.device("cpu"))[::stride]
+            self.box_diagonal = float((highs - lows).norm(dim=1).median())
+        else:
+            self.scene_box = (wp.vec3(0.0), wp.vec3(0.0))
+            self.scene_diagonal = 1.0
 
     @staticmethod
     def _key(g: Gaussians):
@@ -213,8 +232,10 @@ class Tracer:
         prm.k = c.k
         prm.capacity = self.capacity
         prm.obb_test = 0 if c.world_aabb_only else 1
-        prm.repeated_kbuffer = 1 if c.repeated_kbuffer else 0
-        prm.ordered = 1 if c.ordered_traversal else 0
+        prm.traversal = TRAVERSALS.index(c.traversal)
+        prm.window = c.window * self.box_diagonal
+        prm.scene_lo, prm.scene_hi = self.scene_box
+        prm.lowers, prm.uppers = self.bvh.lowers, self.bvh.uppers
         return prm
 
     def _ordered_struct(self, a: int, b: int) -> OrderedBvh:
@@ -222,7 +243,8 @@ class Tracer:
         if self.ordered is None or self.ordered.struct is None:
             return self._no_ordered
         src, out = self.ordered.struct, OrderedBvh()
-        for name in ("node_lo", "node_hi", "order", "lowers", "uppers", "n_leaves", "leaf_size", "count"):
+        for name in ("node_lo", "node_hi", "order", "lowers", "uppers", "sorted_lowers", "sorted_uppers",
+                     "sorted_packed", "n_leaves", "leaf_size", "count"):
             setattr(out, name, getattr(src, name))
         out.heap_keys, out.heap_nodes = self._heap[0][a:b], self._heap[1][a:b]
         return out
@@ -271,11 +293,12 @@ class Tracer:
                 break
             self.last_overflow_rays += n_over
             most = int(needed.max())
-            if most > self.config.max_replay_capacity:
+            ceiling = self.config.max_replay_capacity
+            if ceiling is not None and most > ceiling:
                 raise RuntimeError(
                     f"replay buffer overflow: a ray needs {most} slots > max_replay_capacity "
-                    f"{self.config.max_replay_capacity}; raise TracerConfig.max_replay_capacity")
-            grown = min(self.config.max_replay_capacity, max(2 * self.capacity, most))
+                    f"{ceiling}; raise TracerConfig.max_replay_capacity (or set it to null: no ceiling)")
+            grown = max(2 * self.capacity, most) if ceiling is None else min(ceiling, max(2 * self.capacity, most))
             log.info("replay buffer overflow on %d rays (needed %d > %d slots): re-running with %d",
                      n_over, most, self.capacity, grown)
             self.capacity = grown

@@ -34,12 +34,25 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--torch-threads", type=int, default=None, help="torch intra-op threads (default 1)")
     p.add_argument("--out", type=Path, default=None, help="write the JSON result here")
     p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test, not a measurement)")
+    p.add_argument("--scenes", help="scene types of the second table, comma-separated (room, deep, dense_room, "
+                   "million; default all; 'none' skips the table)")
+    p.add_argument("--scene-res", type=int, help="scene types: res x res rays (default 128)")
+    p.add_argument("--scene-n", type=int, help="scene types: number of Gaussians (default: each type's full size)")
+    p.add_argument("--no-mitsuba", action="store_true", help="scene types: skip the Mitsuba 3 column")
     a = p.parse_args(argv)
     cfg = TracerBenchmarkConfig.quick() if a.quick else TracerBenchmarkConfig()
     for arg, name in (("sizes", "sizes"), ("res", "resolutions"), ("threads", "threads"), ("repeats", "repeats"),
                       ("device", "device"), ("seed", "seed"), ("torch_threads", "torch_threads")):
         if getattr(a, arg) is not None:
             setattr(cfg, name, getattr(a, arg))
+    if a.scenes is not None:
+        cfg.scene_types = [] if a.scenes == "none" else [v for v in a.scenes.split(",") if v]
+    if a.scene_res is not None:
+        cfg.scene_res = a.scene_res
+    if a.scene_n is not None:
+        cfg.scene_n = a.scene_n
+    if a.no_mitsuba:
+        cfg.mitsuba = False
     cfg.__post_init__()
     return a.what, cfg, a.out
 

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from models.tracer import Tracer, TracerConfig
-from stages.benchmark.scene import benchmark_scene, pinhole_rays
+from stages.benchmark.scene import SCENE_TYPES, benchmark_scene, pinhole_rays, scene_type
 
 # metric -> (comparison, threshold), the targets of the issue on 2 CPU cores
 TARGETS = {
@@ -39,6 +39,10 @@ class TracerBenchmarkConfig:
     # itself, and torch's OpenMP pool spinning against busy cores made small elementwise ops
     # (activations, their backward) ~100x slower on the shared 2-core machine.
     torch_threads: int = 1
+    scene_types: list[str] = field(default_factory=lambda: list(SCENE_TYPES))  # the scene-type table
+    scene_res: int = 128      # scene types: res x res rays
+    scene_n: int | None = None  # scene types: Gaussians (None = each type's full size)
+    mitsuba: bool = True      # scene types: Mitsuba 3 ellipsoids on the same Gaussians and rays (mitsuba_ref.py)
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
@@ -49,10 +53,14 @@ class TracerBenchmarkConfig:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
         if self.repeats < 1:
             raise ValueError(f"repeats must be >= 1, got {self.repeats}")
+        unknown = [s for s in self.scene_types if s not in SCENE_TYPES]
+        if unknown:
+            raise ValueError(f"unknown scene type(s) {unknown}; known: {', '.join(SCENE_TYPES)}")
 
     @staticmethod
     def quick() -> "TracerBenchmarkConfig":
-        return TracerBenchmarkConfig(sizes=[3000], resolutions=[24], threads=[1, 2], repeats=1)
+        return TracerBenchmarkConfig(sizes=[3000], resolutions=[24], threads=[1, 2], repeats=1, scene_res=16,
+                                     scene_n=3000)
 
 
 def _best(fn, repeats: int) -> tuple[float, float]:
@@ -111,7 +119,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     row["refit_share"] = row["refit_ms"] / row["step_ms"]
     row["rebuild_share"] = row["rebuild_ms"] / (row["forward_backward_ms"] + row["rebuild_ms"])
 
-    kbuf = Tracer(TracerConfig(num_threads=threads, repeated_kbuffer=True), cfg.device)
+    kbuf = Tracer(TracerConfig(num_threads=threads, traversal="kbuffer"), cfg.device)
     row["kbuffer_forward_ms"], row["kbuffer_forward_cpu_ms"] = _best(lambda: forward(kbuf), cfg.repeats)
     row["single_vs_kbuffer_speedup"] = row["kbuffer_forward_ms"] / row["forward_ms"]
 
@@ -119,7 +127,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     row["aabb_forward_ms"], row["aabb_forward_cpu_ms"] = _best(lambda: forward(aabb), cfg.repeats)
 
     # stretch: own BVH traversed front to back with early termination
-    ordered = Tracer(TracerConfig(num_threads=threads, ordered_traversal=True), cfg.device)
+    ordered = Tracer(TracerConfig(num_threads=threads, traversal="ordered"), cfg.device)
     out_ordered = forward(ordered)
     row["ordered_forward_ms"], row["ordered_forward_cpu_ms"] = _best(lambda: forward(ordered), cfg.repeats)
     row["ordered_candidates_per_ray"] = float(out_ordered.candidates.float().mean())
@@ -158,6 +166,66 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     return row
 
 
+def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
+    """One scene type: our default (interval) traversal, the single traversal it replaced and Mitsuba 3 on the
+    same Gaussians and rays, timed interleaved (best of ``repeats``); counts per ray; fused / forward."""
+    gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
+    gs = gs.requires_grad_()
+    threads = max(cfg.threads)
+    ours = Tracer(TracerConfig(num_threads=threads), cfg.device)
+    single = Tracer(TracerConfig(num_threads=threads, traversal="single"), cfg.device)
+    row: dict = {"scene": name, "description": SCENE_TYPES[name][0], "n_gaussians": len(gs), "rays": len(dirs),
+                 "threads": threads}
+
+    def forward(tr):
+        with torch.no_grad():
+            return tr.trace(origins, dirs, gs)
+
+    timed = {"ours": lambda: forward(ours), "single": lambda: forward(single)}
+    if cfg.mitsuba:
+        from stages.benchmark.mitsuba_ref import MitsubaEllipsoids
+
+        mitsuba = MitsubaEllipsoids(gs, TracerConfig(), cfg.device)
+        timed["mitsuba"] = lambda: mitsuba.render(origins, dirs)
+    results = {k: fn() for k, fn in timed.items()}  # warm-up: kernel compilation, BVH / JIT
+    best = {k: (math.inf, math.inf) for k in timed}
+    for _ in range(cfg.repeats):
+        for k, fn in timed.items():
+            c0, w0 = time.process_time(), time.perf_counter()
+            results[k] = fn()
+            w, c = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
+            best[k] = min(best[k], (w, c))
+    out, ref = results["ours"], results["single"]
+    row["forward_ms"], row["forward_cpu_ms"] = best["ours"]
+    row["single_forward_ms"], row["single_forward_cpu_ms"] = best["single"]
+    row["speedup_over_single_cpu"] = row["single_forward_cpu_ms"] / row["forward_cpu_ms"]
+    row["candidates_per_ray"] = float(out.candidates.float().mean())
+    row["blended_per_ray"] = float(out.blended_count.float().mean())
+    row["candidates_per_blended"] = row["candidates_per_ray"] / max(row["blended_per_ray"], 1e-9)
+    row["single_candidates_per_blended"] = float(ref.candidates.float().mean()) / max(row["blended_per_ray"], 1e-9)
+    row["accepted_per_ray"] = float(ref.hit_count.float().mean())  # every accepted hit (single traversal)
+    row["hits_found_per_ray"] = float(out.hit_count.float().mean())  # found before the ray stopped
+    row["same_as_single"] = bool(torch.equal(out.blended_count, ref.blended_count)
+                                 and (out.diffuse - ref.diffuse).abs().max() < 1e-4)
+    if cfg.mitsuba:
+        rgb, _, _, _ = results["mitsuba"]
+        row["mitsuba_ms"], row["mitsuba_cpu_ms"] = best["mitsuba"]
+        row["ours_over_mitsuba"] = row["forward_ms"] / row["mitsuba_ms"]
+        row["ours_over_mitsuba_cpu"] = row["forward_cpu_ms"] / row["mitsuba_cpu_ms"]
+        row["mitsuba_mean_abs_diff"] = float((torch.from_numpy(rgb) - out.diffuse).abs().mean())
+    def fused():
+        for v in gs.params().values():
+            v.grad = None
+        return ours.trace_fused(origins, dirs, gs, {"diffuse": torch.full((len(dirs), 3), 0.5)}, {"diffuse": 1.0})
+
+    row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats)
+    row["fused_over_forward"] = row["forward_backward_ms"] / row["forward_ms"]
+    row["fused_over_forward_cpu"] = row["forward_backward_cpu_ms"] / row["forward_cpu_ms"]
+    for tr in (ours, single):
+        tr.close()
+    return row
+
+
 def _met(value: float, op: str, threshold: float) -> bool:
     return value <= threshold if op == "<=" else value >= threshold
 
@@ -169,6 +237,10 @@ def run_tracer_benchmark(cfg: TracerBenchmarkConfig, progress=print) -> dict:
     torch.set_num_threads(cfg.torch_threads)
     try:
         rows = _run_rows(cfg, progress)
+        scenes = []
+        for name in cfg.scene_types:
+            progress(f"tracer benchmark: scene type {name} ...")
+            scenes.append(bench_scene_type(name, cfg))
     finally:
         torch.set_num_threads(saved_threads)
     import warp as wp
@@ -176,6 +248,7 @@ def run_tracer_benchmark(cfg: TracerBenchmarkConfig, progress=print) -> dict:
     return {
         "benchmark": "tracer",
         "config": asdict(cfg),
+        "scenes": scenes,
         "targets": {k: f"{op} {v}" for k, (op, v) in TARGETS.items()}
         | {"forward_ms_50k_128": f"<= {FORWARD_TARGET_MS}"},
         "results": rows,
@@ -212,13 +285,34 @@ COLUMNS = [
 ]
 
 
-def format_table(result: dict) -> str:
-    head = [c[0] for c in COLUMNS]
-    body = [[fmt.format(r[key]) for _, key, fmt in COLUMNS] for r in result["results"]]
+SCENE_COLUMNS = [
+    ("scene", "scene", "{}"), ("N", "n_gaussians", "{:d}"), ("rays", "rays", "{:d}"),
+    ("fwd ms", "forward_ms", "{:.0f}"), ("fwd cpu ms", "forward_cpu_ms", "{:.0f}"),
+    ("single ms", "single_forward_ms", "{:.0f}"), ("single cpu", "single_forward_cpu_ms", "{:.0f}"),
+    ("x single cpu", "speedup_over_single_cpu", "{:.2f}"),
+    ("mitsuba ms", "mitsuba_ms", "{:.0f}"), ("mitsuba cpu", "mitsuba_cpu_ms", "{:.0f}"),
+    ("ours/mi", "ours_over_mitsuba", "{:.2f}"), ("ours/mi cpu", "ours_over_mitsuba_cpu", "{:.2f}"),
+    ("cand/blended", "candidates_per_blended", "{:.2f}"), ("single c/b", "single_candidates_per_blended", "{:.1f}"),
+    ("blended", "blended_per_ray", "{:.1f}"), ("accepted", "accepted_per_ray", "{:.1f}"),
+    ("fused/fwd", "fused_over_forward", "{:.2f}"), ("fused/fwd cpu", "fused_over_forward_cpu", "{:.2f}"),
+]
+
+
+def _table(columns, rows) -> list[str]:
+    head = [c[0] for c in columns]
+    body = [[fmt.format(r[key]) if key in r else "-" for _, key, fmt in columns] for r in rows]
     widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
     line = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
-    lines = [line(head), line(["-" * w for w in widths]), *map(line, body)]
+    return [line(head), line(["-" * w for w in widths]), *map(line, body)]
+
+
+def format_table(result: dict) -> str:
+    lines = _table(COLUMNS, result["results"])
     for r in result["results"]:
         missed = [k for k, ok in r["targets_met"].items() if not ok]
         lines.append(f"N={r['n_gaussians']} res={r['resolution']}: targets missed: {', '.join(missed) or 'none'}")
+    if result.get("scenes"):
+        lines += ["", "scene types (our default = interval traversal; single = the traversal it replaced; mitsuba = "
+                  "Mitsuba 3 ellipsoids on the same Gaussians and rays):", *_table(SCENE_COLUMNS, result["scenes"])]
+        lines += [f"  {r['scene']}: {r['description']}" for r in result["scenes"]]
     return "\n".join(lines)

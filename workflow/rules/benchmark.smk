@@ -1,5 +1,5 @@
 rule benchmark_tracer:
-    """Tracer speed table (stdout, log) and JSON: forward, fused backward, traversal, BVH, threads."""
+    """Tracer speed tables (stdout, log) and JSON: forward, fused backward, traversal, BVH, threads; scene types vs Mitsuba 3."""
     output:
         f"{RESULTS}/benchmark/tracer.json",
     params:

@@ -1,0 +1,275 @@
+"""t-interval traversal (the default): a ray's cost follows the hits it blends, not everything behind them.
+
+The ray is walked in windows of its parameter t, front to back. A window (t_lo, D] is one ``wp.bvh_query_ray``
+started at t_lo (the origin moved there, so boxes the ray has left are skipped) with ``max_dist`` reaching D
+(boxes entered beyond D are skipped): it visits only the nodes overlapping the window, in Warp's fast
+traversal. Each Gaussian is evaluated once: in the window its box is entered in ("entry" < D + margin); its
+accepted hit either lies in that window (t* <= D) or later, and is then CARRIED (kept in the top replay slots)
+to the window it belongs to, while later windows skip the boxes entered before their start with a cheap AABB
+test. A window's hits go to the replay slots after the blended prefix, are sorted by (t, id) and blended front
+to back; the ray stops as soon as T < threshold, and one more accepted hit (a carried one, the window's next, or
+a probe's) settles the tail rule. The hits blended, and their order, are exactly those of the single traversal
+and of the PyTorch reference: a hit's max-response point t* lies in its Gaussian's box (entry <= t*), and
+consecutive windows partition t.
+
+Window length: ``TraceParams.window`` (world units: a multiple of the median Gaussian box diagonal, divided by
+|d| for the ray parameter), then sized per ray for ~16 hits at the density seen so far. Bounded working set:
+the free replay slots after the blended prefix hold the window's hits (from the bottom) and the carried ones
+(from the top). When they meet, the carried hits are dropped first (the next window then re-examines every box
+it overlaps: skipping is only used while the carried set is complete); when the window's own hits fill the
+slots, it keeps its nearest hits and shrinks D to the farthest kept (max_dist shrinks, which Warp allows). No
+window overflows; only a blended prefix longer than the buffer needs more slots (with the default threshold at
+most ~920 hits).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from models.tracer.blend import write_outputs
+from models.tracer.hit import eval_packed, hit_less
+from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
+
+ID_MAX = wp.constant(2147483647)
+FAR = wp.constant(3.0e38)
+
+
+@wp.func
+def margin(t: float) -> float:
+    """Float slack of the window bounds (ray-parameter units)."""
+    return 1.0e-4 * (1.0 + wp.abs(t))
+
+
+@wp.func
+def inv_component(x: float) -> float:
+    if wp.abs(x) < 1.0e-30:
+        if x < 0.0:
+            return -1.0e30
+        return 1.0e30
+    return 1.0 / x
+
+
+@wp.func
+def slab(o: wp.vec3, inv: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
+    """(entry, exit) t of the ray in the box [lo, hi]; entry > exit when it misses."""
+    ta = wp.cw_mul(lo - o, inv)
+    tb = wp.cw_mul(hi - o, inv)
+    t0 = wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
+    t1 = wp.min(wp.min(wp.max(ta[0], tb[0]), wp.max(ta[1], tb[1])), wp.max(ta[2], tb[2]))
+    return wp.vec2(t0, t1)
+
+
+@wp.func
+def store(rep: Replay, ray: int, slot: int, t: float, gid: int, alpha: float):
+    rep.t[ray, slot] = t
+    rep.ids[ray, slot] = gid
+    rep.alpha[ray, slot] = alpha
+
+
+@wp.func
+def move(rep: Replay, ray: int, dst: int, src: int):
+    store(rep, ray, dst, rep.t[ray, src], rep.ids[ray, src], rep.alpha[ray, src])
+
+
+@wp.func
+def insert_sorted(rep: Replay, ray: int, base: int, m: int, t: float, gid: int, alpha: float):
+    """Insert into the sorted slots base..base+m-1; slot base+m is overwritten (free, or the dropped farthest)."""
+    j = base + m
+    while j > base and hit_less(t, gid, rep.t[ray, j - 1], rep.ids[ray, j - 1]) != 0:
+        move(rep, ray, j, j - 1)
+        j -= 1
+    store(rep, ray, j, t, gid, alpha)
+
+
+@wp.func
+def sort_slots(rep: Replay, ray: int, base: int, m: int):
+    """Insertion sort of the slots base..base+m-1 by (t, id)."""
+    for k in range(1, m):
+        insert_sorted(rep, ray, base, k, rep.t[ray, base + k], rep.ids[ray, base + k], rep.alpha[ray, base + k])
+
+
+@wp.func
+def later(t: float, gid: int, t_ref: float, id_ref: int) -> int:
+    """(t, gid) after (t_ref, id_ref) in the hit order (by t, ties by id)."""
+    return hit_less(t_ref, id_ref, t, gid)
+
+
+@wp.func
+def probe_beyond(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, t_lo: float,
+                 id_lo: int) -> wp.vec2:
+    """(1 if an accepted hit lies after (t_lo, id_lo), candidates evaluated): the tail rule of a ray that became
+    opaque exactly at the end of what was examined."""
+    shift = wp.max(t_lo - margin(t_lo), 0.0)
+    query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
+    gid = int(0)
+    found = int(0)
+    cand = int(0)
+    while found == 0 and wp.bvh_query_next(query, gid, 1.0e30):
+        cand += 1
+        h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
+        if h[1] > 0.0 and later(h[0], gid, t_lo, id_lo) != 0:
+            found = 1
+    return wp.vec2(float(found), float(cand))
+
+
+@wp.func
+def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
+                     outs: RayOutputs) -> int:
+    """Windows of t front to back. Returns 0 when the blended prefix outgrows the replay buffer."""
+    trans = float(1.0)
+    c_diffuse = wp.vec3(0.0)
+    c_normal = wp.vec3(0.0)
+    c_f0 = wp.vec3(0.0)
+    c_depth = float(0.0)
+    c_rough = float(0.0)
+    blended = int(0)
+    n_acc = int(0)
+    cand = int(0)
+    obb = int(0)
+    inv = wp.vec3(inv_component(d[0]), inv_component(d[1]), inv_component(d[2]))
+    scene = slab(o, inv, prm.scene_lo, prm.scene_hi)
+    t_end = scene[1]
+    done = int(0)
+    if scene[0] > scene[1] or t_end <= prm.t_min:
+        done = 1  # the ray misses every Gaussian's box
+    t_lo = prm.t_min     # hits after (t_lo, id_lo) are still to come: the last blended, or the last window's end
+    id_lo = int(-1)
+    delta = prm.window / wp.length(d)
+    examined = float(-FAR)  # boxes entered before this were examined (while skip_ok): their hits blended or carried
+    skip_ok = int(0)
+    carried = int(0)        # carried hits, in slots capacity - carried .. capacity - 1
+    cap = prm.capacity
+    while done == 0:
+        base = blended
+        room = cap - base
+        if room < 2:
+            outs.needed[ray] = 2 * cap
+            outs.candidates[ray] = cand
+            outs.obb_candidates[ray] = obb
+            return 0
+        d_t = wp.max(t_lo, scene[0]) + delta   # the window ends at (d_t, d_id)
+        d_id = int(ID_MAX)
+        last = int(0)
+        if d_t >= t_end:
+            d_t = float(FAR)  # the rest of the ray
+            last = 1
+        entered = d_t + margin(d_t)  # boxes entered before this are examined in this window
+        m = int(0)
+        # carried hits that belong to this window move down to the window's slots
+        i = int(0)
+        while i < carried:
+            s = cap - 1 - i
+            if later(rep.t[ray, s], rep.ids[ray, s], d_t, d_id) == 0:
+                tt = rep.t[ray, s]
+                ii = rep.ids[ray, s]
+                aa = rep.alpha[ray, s]
+                move(rep, ray, s, cap - carried)
+                carried -= 1
+                store(rep, ray, base + m, tt, ii, aa)
+                m += 1
+            else:
+                i += 1
+        next_skip_ok = int(1)
+        full = int(0)
+        shift = wp.max(t_lo - margin(t_lo), 0.0)
+        max_dist = float(1.0e30)
+        if last == 0:
+            max_dist = entered - shift + margin(entered)
+        if m == room:
+            # the carried hits alone fill the window: full (see below)
+            sort_slots(rep, ray, base, m)
+            full = 1
+            next_skip_ok = 0
+            last = 0
+            d_t = rep.t[ray, base + m - 1]
+            d_id = rep.ids[ray, base + m - 1]
+            max_dist = d_t - shift + 2.0 * margin(d_t)
+        query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
+        gid = int(0)
+        while wp.bvh_query_next(query, gid, max_dist):
+            entry = slab(o, inv, prm.lowers[gid], prm.uppers[gid])[0]
+            if (last != 0 or entry < entered) and (skip_ok == 0 or entry >= examined):
+                cand += 1
+                h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min,
+                                prm.obb_test)
+                if h[2] > 0.0:
+                    obb += 1
+                if h[1] > 0.0:
+                    if later(h[0], gid, t_lo, id_lo) != 0:
+                        if later(h[0], gid, d_t, d_id) == 0:  # in this window
+                            if m + carried >= room and carried > 0:
+                                carried = 0  # make room: the next window re-examines what they came from
+                                next_skip_ok = 0
+                            if m < room:
+                                store(rep, ray, base + m, h[0], gid, h[1])
+                                m += 1
+                                if m == room and full == 0:
+                                    # full: sort once, then keep the nearest hits and shrink the window to them
+                                    sort_slots(rep, ray, base, m)
+                                    full = 1
+                                    next_skip_ok = 0
+                                    last = 0
+                                    d_t = rep.t[ray, base + m - 1]
+                                    d_id = rep.ids[ray, base + m - 1]
+                                    max_dist = d_t - shift + 2.0 * margin(d_t)
+                            else:
+                                insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
+                                d_t = rep.t[ray, base + m - 1]
+                                d_id = rep.ids[ray, base + m - 1]
+                                max_dist = d_t - shift + 2.0 * margin(d_t)
+                        elif full == 0 and m + carried < room:
+                            carried += 1  # a later window's hit: carried there
+                            store(rep, ray, cap - carried, h[0], gid, h[1])
+                        else:
+                            next_skip_ok = 0  # not kept: the next window re-examines its box
+        if full == 0:
+            sort_slots(rep, ray, base, m)
+        depth = float(0.0)  # optical depth blended in this window: sum of -ln(1 - alpha)
+        for j in range(m):
+            if done == 0:
+                if trans < prm.trans_threshold:
+                    done = 1
+                    n_acc = blended + (m - j) + carried  # accepted, never blended: the tail rule
+                else:
+                    s = base + j
+                    gi = rep.ids[ray, s]
+                    a = rep.alpha[ray, s]
+                    w = trans * a
+                    c_diffuse += w * g.diffuse[gi]
+                    c_normal += w * g.normal[gi]
+                    c_f0 += w * g.f0[gi]
+                    c_rough += w * g.roughness[gi]
+                    c_depth += w * rep.t[ray, s]
+                    rep.trans[ray, s] = trans
+                    trans = trans * (1.0 - a)
+                    depth -= wp.log(1.0 - a)
+                    blended += 1
+        if done == 0:
+            t_lo = d_t
+            id_lo = d_id
+            examined = entered
+            skip_ok = next_skip_ok
+            if skip_ok == 0:
+                carried = 0  # incomplete: the next window re-examines everything it overlaps (no duplicates)
+            n_acc = blended + carried
+            if last != 0:
+                done = 1  # every hit of the ray was in this window
+            elif trans < prm.trans_threshold:
+                done = 1
+                if carried == 0:
+                    # opaque exactly at the end of what was examined: does one more accepted hit exist?
+                    found = probe_beyond(ray, o, d, g, prm, t_lo, id_lo)
+                    n_acc = blended + int(found[0])
+                    cand += int(found[1])
+            elif m == 0:
+                delta = delta * 4.0
+            else:
+                # the next window: the length that takes T to the threshold at this window's optical-depth rate
+                # (measured from its first hit), x1/2 .. x4 of this one
+                span = wp.max(d_t - rep.t[ray, base], 1.0e-6 * delta)
+                need = wp.log(trans / prm.trans_threshold) + 0.1
+                delta = wp.clamp(1.25 * need * span / wp.max(depth, 1.0e-6), 0.5 * delta, 4.0 * delta)
+    outs.candidates[ray] = cand
+    outs.obb_candidates[ray] = obb
+    write_outputs(ray, n_acc, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    return 1
