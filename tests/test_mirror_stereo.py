@@ -15,7 +15,8 @@ from models.capture.camera import Camera
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.mirror_stereo import fit_plane, mirror_stereo_gaussians, mirror_views
+from models.reconstruction.mirror_stereo import (MirrorView, fit_plane, mirror_stereo_gaussians, mirror_views,
+                                                 planar_components)
 
 PANEL_Z, PANEL_HALF = 2.0, 0.5
 BACKGROUND = np.array([0.3, 0.3, 0.3])
@@ -32,9 +33,10 @@ def _panel_colour(p: np.ndarray) -> np.ndarray:
     return np.where(inside[..., None], 0.5 + 0.4 * waves, BACKGROUND)
 
 
-def _view(i: int, position, curved: bool = False) -> View:
+def _view(i: int, position, curved: bool = False, cylinder: bool = False) -> View:
     """A camera at ``position`` looking straight down (-z) at the floor mirror z = 0 (F0 0.9, roughness 0);
-    ``curved`` tilts the normals like a convex mirror's."""
+    ``curved`` tilts the normals like a convex mirror's; ``cylinder`` puts a brushed-metal cylinder (F0 0.9,
+    roughness 0.15: shiny too) in front of the mirror over the first 10 columns of the image."""
     c2w = np.eye(4)
     c2w[:3, 3] = position
     cam = Camera(width=SIZE, height=SIZE, fl_x=FL, fl_y=FL, cx=SIZE / 2, cy=SIZE / 2, c2w=c2w)
@@ -49,14 +51,22 @@ def _view(i: int, position, curved: bool = False) -> View:
     r = d - 2 * (d * n).sum(-1, keepdims=True) * n
     radiance = _panel_colour(x + ((PANEL_Z - x[..., 2]) / r[..., 2])[..., None] * r)
     f = np.float32
+    rough = np.zeros((SIZE, SIZE, 1))
+    if cylinder:
+        side = (slice(None), slice(0, 10))
+        a = np.radians(np.linspace(-25, 25, 10))[None, :]
+        n[side] = np.stack([np.sin(a), np.zeros_like(a), np.cos(a)], -1)  # the cylinder's axis along y
+        t[side] *= 0.7  # 30 cm nearer than the mirror
+        rough[side] = 0.15
+        radiance[side] = 0.8
     buffers = {"depth": t[..., None].astype(f), "normal": n.astype(f), "f0": np.full((SIZE, SIZE, 3), 0.9, f),
-               "roughness": np.zeros((SIZE, SIZE, 1), f), "specular": (0.9 * radiance).astype(f),
+               "roughness": rough.astype(f), "specular": (0.9 * radiance).astype(f),
                "diffuse": np.zeros((SIZE, SIZE, 3), f), "mask": np.ones((SIZE, SIZE, 1), f)}
     return View(name=f"v{i}", camera=cam, split="train", buffers=buffers)
 
 
-def _rays(curved: bool = False) -> RaySet:
-    views = [_view(i, np.array([x, y, 1.0]), curved) for i, (x, y) in
+def _rays(curved: bool = False, cylinder: bool = False) -> RaySet:
+    views = [_view(i, np.array([x, y, 1.0]), curved, cylinder) for i, (x, y) in
              enumerate([(x, y) for x in (-0.3, 0.0, 0.3) for y in (-0.3, 0.0, 0.3)])]
     empty = torch.zeros(0, 3)
     return RaySet(empty, empty, torch.zeros(0, dtype=torch.bool), {}, torch.zeros(0, dtype=torch.long), views)
@@ -77,9 +87,18 @@ def stereo():
     return mirror_stereo_gaussians(_rays(), reference_trace, _room(), count=100000)
 
 
-def test_stereo_puts_gaussians_on_the_panel_seen_only_in_the_mirror(stereo):
-    fill, stats = stereo
-    assert stats["planar_views"] == 9 and fill is not None, stats
+@pytest.fixture(scope="module")
+def stereo_beside_cylinder():
+    return mirror_stereo_gaussians(_rays(cylinder=True), reference_trace, _room(), count=100000)
+
+
+@pytest.mark.parametrize("which", ["stereo", "stereo_beside_cylinder"])
+def test_stereo_puts_gaussians_on_the_panel_seen_only_in_the_mirror(which, request):
+    """The panel is found, also when a shiny curved object shares every view with the mirror (it used to
+    switch every view's mirror off: the whole view's shiny pixels had to be one plane)."""
+    fill, stats = request.getfixturevalue(which)
+    assert stats["planar_views"] == 9 and stats["planes"] == 9 and fill is not None, stats
+    assert stats["ignored"] == (9 if which == "stereo_beside_cylinder" else 0)
     p = fill.means.numpy()
     footprint = 3.0 / FL  # a pixel at the panel's virtual distance (1 to the mirror + 2 up)
     assert np.median(np.abs(p[:, 2] - PANEL_Z)) < footprint
@@ -101,9 +120,35 @@ def test_stereo_gaussians_carry_the_reflected_colour(stereo):
     assert (fill.roughness == 1).all() and torch.allclose(fill.f0, torch.tensor(0.04))
 
 
+def _one(view) -> RaySet:
+    empty = torch.zeros(0, 3)
+    return RaySet(empty, empty, torch.zeros(0, dtype=torch.bool), {}, torch.zeros(0, dtype=torch.long), [view])
+
+
+def test_planar_components_split_a_view_into_mirrors_and_ignore_the_cylinder():
+    view = _view(0, np.array([0.0, 0.0, 1.0]), cylinder=True)
+    mv = MirrorView(view, np.ones((SIZE, SIZE), bool))
+    regions = planar_components(mv.points, mv.normals, np.ones((SIZE, SIZE), bool), min_pixels=5)
+    sizes = sorted(r.sum() for r in regions)  # the mirror, and the cylinder's pieces (as its normals turn)
+    assert sizes[-1] == (SIZE - 10) * SIZE and sum(sizes) == SIZE * SIZE and max(regions, key=np.sum)[:, :10].sum() == 0
+    # a tighter cylinder (13 degrees per column) falls apart into one-column strips: none is a mirror
+    view.buffers["normal"][:, :10] = np.stack([np.sin(a := np.radians(np.linspace(-60, 60, 10))),
+                                              np.zeros(10), np.cos(a)], -1)[None]
+    planes, stats = mirror_views(_one(view), None, _room())
+    assert len(planes) == 1 and planes[0].open.sum() == (SIZE - 10) * SIZE
+    # a crease in the normals (two mirrors meeting at a corner) splits the mirror region in two
+    n = mv.normals.copy()
+    n[:, 30:] = [0.0, math.sin(math.radians(10)), math.cos(math.radians(10))]
+    regions = planar_components(mv.points, n, np.ones((SIZE, SIZE), bool), min_pixels=5)
+    left = [r for r in regions if r[:, 10:30].any()]
+    right = [r for r in regions if r[:, 30:].any()]
+    assert len(left) == len(right) == 1 and left[0][:, 10:30].all() and right[0][:, 30:].all()
+    assert not left[0][:, 30:].any() and not right[0][:, :30].any()
+
+
 def test_curved_mirrors_and_few_views_add_nothing():
     fill, stats = mirror_stereo_gaussians(_rays(curved=True), reference_trace, _room())
-    assert fill is None and stats["planar_views"] == 0
+    assert fill is None and stats["planar_views"] == 0 and stats["ignored"] == 9
     rays = _rays()
     rays.views = rays.views[:1]
     fill, stats = mirror_stereo_gaussians(rays, reference_trace, _room())

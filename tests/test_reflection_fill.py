@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from models.gaussians import Gaussians
@@ -117,8 +118,25 @@ def test_highlight_fill_finds_a_lamp_beyond_the_box_by_plane_sweep():
     assert abs(stats["box_scale"] * 1.1 - 1.6) < 0.06  # box half-size 1.1 (padded), lamp at 1.6
     assert (lights.means[:, 2] - 1.6).abs().max() < 0.06
     assert (lights.means[:, :2].abs() < 0.4 + 0.05).all()  # on the lamp's square
-    _, purity = sweep_box_scale(*_open_rays(rays), torch.full((3,), -1.1), torch.full((3,), 1.1))
-    assert purity[0] < max(purity) - 0.05  # the unscaled box is clearly worse
+    _, _, purity, notes = sweep_box_scale(*_open_rays(rays), torch.full((3,), -1.1), torch.full((3,), 1.1))
+    assert purity[0] < max(purity) - 0.05 and not notes  # the unscaled box is clearly worse; a true minimum
+
+
+@pytest.mark.parametrize("lamp_z", [5.0, 8.0])
+def test_box_scale_search_extends_past_its_range_for_a_far_lamp(lamp_z):
+    """A lamp at 4.5-7x the box's half-size: the first range (1-3) ends at its edge, so the search goes on and
+    finds it (the highlight fill used to stop at 3.00, the edge)."""
+    rays = _lamp_over_mirror(lamp_z=lamp_z, half=0.4 * lamp_z / 1.6)  # the same patch in the mirror
+    scale, scales, purity, notes = sweep_box_scale(*_open_rays(rays), torch.full((3,), -1.1), torch.full((3,), 1.1))
+    assert scales[-1] > 3.0 and not notes, (scale, notes)
+    assert abs(scale * 1.1 - lamp_z) < 0.2 * lamp_z  # far away the views' rays are nearly parallel: a flat peak
+
+
+def test_box_scale_search_says_when_it_ends_at_its_edge():
+    rays = _lamp_over_mirror(lamp_z=8.0, half=2.0)
+    scale, scales, _, notes = sweep_box_scale(*_open_rays(rays), torch.full((3,), -1.1), torch.full((3,), 1.1),
+                                              max_scale=4.0)
+    assert scale == scales[-1] == 4.0 and len(notes) == 1 and "edge of the search" in notes[0]
 
 
 def _open_rays(rays: RaySet):

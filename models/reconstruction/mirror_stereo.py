@@ -17,13 +17,16 @@ the sweep) and textured (``min_contrast``): flat colour has no clear best and ad
 training camera sees to be empty (``seen_empty``) are not candidates.
 
 Each kept pixel gives one matte Gaussian there: the reflection's colour as diffuse colour, the size of a pixel
-at its virtual distance. A view's mirror is the least-squares plane through its mirror pixels (points at
-depth along their rays); a view whose mirror pixels are not on one plane (a curved mirror, several mirrors)
-takes no part.
+at its virtual distance. The unit is a MIRROR, not a view: a view's mirror-like pixels are split into smooth
+connected regions (``planar_components``), and each region whose points and normals fit one plane is a
+mirror with its own virtual camera (its least-squares plane). Curved reflectors (a metal cylinder beside the
+mirror) and other mirrors in the frame are separate regions: they are ignored, or used as mirrors of their
+own, and never switch a view's mirror off.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -33,6 +36,8 @@ from scipy.ndimage import uniform_filter
 from models.gaussians import Gaussians
 
 from .reflection_fill import LUMINANCE, box_exit, matte_gaussians, scene_box, seen_empty, shiny
+
+log = logging.getLogger(__name__)
 
 
 class MirrorView:
@@ -89,50 +94,106 @@ def fit_plane(points: np.ndarray, towards: np.ndarray, tol: float) -> tuple[np.n
     return n, float(n @ c)
 
 
+def planar_components(points: np.ndarray, normals: np.ndarray, mask: np.ndarray, min_pixels: int,
+                      edge_deg: float = 8.0, slope: float = 0.2) -> list[np.ndarray]:
+    """The connected regions of ``mask`` [H, W] whose neighbouring pixels continue one smooth surface: normals
+    [H, W, 3] within ``edge_deg`` of each other and the step between their points [H, W, 3] within ``slope``
+    (rise over run) of the first one's tangent plane (a depth jump, e.g. to an object in front of the mirror,
+    cuts the region). Each region with at least ``min_pixels`` pixels is returned as a mask; whether it is a
+    PLANE is decided by its caller (a curved reflector forms one smooth region too)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    h, w = mask.shape
+    index = np.arange(h * w).reshape(h, w)
+    cos_edge = math.cos(math.radians(edge_deg))
+    rows, cols = [], []
+    for a, b in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                 ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+        step = points[b] - points[a]
+        run = np.linalg.norm(step, axis=-1)
+        ok = mask[a] & mask[b] & ((normals[a] * normals[b]).sum(-1) > cos_edge)
+        ok &= np.abs((normals[a] * step).sum(-1)) <= slope * run
+        rows.append(index[a][ok]), cols.append(index[b][ok])
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(h * w, h * w))
+    _, label = connected_components(graph, directed=False)
+    label = np.where(mask.reshape(-1), label, -1)
+    ids, counts = np.unique(label[label >= 0], return_counts=True)
+    return [(label == i).reshape(h, w) for i in ids[counts >= min_pixels]]
+
+
+def _width_px(region: np.ndarray) -> float:
+    """The narrow extent of an image region: the smaller standard deviation of its pixel coordinates (a strip
+    w pixels wide has ~w / 3.5)."""
+    rows, cols = np.nonzero(region)
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(np.stack([rows, cols]).astype(np.float64)))[0], 0.0)))
+
+
 def mirror_views(rays, trace_fn, gaussians: Gaussians, min_pixels: int = 64, open_transmittance: float = 0.5,
-                 max_normal_deg: float = 10.0) -> tuple[list[MirrorView | None], dict]:
-    """Per training view, its ``MirrorView`` or None: no buffers, fewer than ``min_pixels`` mirror pixels, or not
-    one plane (the points off the least-squares plane, or more than a tenth of the normals more than
-    ``max_normal_deg`` from its normal)."""
+                 max_normal_deg: float = 10.0, min_width_px: float = 2.0) -> tuple[list[MirrorView], dict]:
+    """Every planar mirror of every training view, as a ``MirrorView`` (one view may give several: one per
+    mirror). A view's mirror-like pixels are split into smooth connected regions (``planar_components``); a
+    region of at least ``min_pixels`` pixels, not a strip (``min_width_px``: the smaller standard deviation of
+    its pixel coordinates), is a planar mirror when its points lie on their least-squares plane
+    and at least nine tenths of its normals are within ``max_normal_deg`` of that plane's normal. Curved
+    reflectors (a metal cylinder, a sphere) and small regions are ignored without affecting the view's other
+    regions. Views without the buffers take no part. Statistics: planes, views with a plane, pixels used,
+    regions ignored, and a per-view list (for the log)."""
     lo, hi, step = scene_box(gaussians)
     need = ("depth", "normal", "f0", "roughness", "specular")
-    out, planar = [], 0
-    for view in rays.views:
+    tol = float((hi - lo).sum()) * 2e-3
+    cos_max = math.cos(math.radians(max_normal_deg))
+    out: list[MirrorView] = []
+    stats = {"planes": 0, "planar_views": 0, "pixels": 0, "ignored": 0, "per_view": []}
+    for v, view in enumerate(rays.views):
         b = view.buffers
         if not all(k in b for k in need):
-            out.append(None)
             continue
         hit = b["mask"][..., 0] > 0.5 if "mask" in b else b["depth"][..., 0] > 0
-        mirror = hit & shiny(b["f0"], b["roughness"])
-        if mirror.sum() < min_pixels:
-            out.append(None)
+        shiny_px = hit & shiny(b["f0"], b["roughness"])
+        if shiny_px.sum() < min_pixels:
             continue
         cam = view.camera
-        mv = MirrorView(view, mirror)
-        plane = fit_plane(mv.points[mirror], cam.origin, tol=float((hi - lo).sum()) * 2e-3)
-        # the normals must agree with the plane: they say curved (or several mirrors) where the points look flat
-        if plane is None or np.quantile(np.abs(mv.normals[mirror] @ plane[0]), 0.1) < \
-                math.cos(math.radians(max_normal_deg)):
-            out.append(None)
-            continue
-        mv.normal, mv.offset = plane
-        if trace_fn is not None:
-            x = torch.from_numpy(mv.points[mirror]).float()
-            r = torch.from_numpy(mv.dirs[mirror]).float()
-            t = trace_fn(x + step * r, r, gaussians).transmittance.reshape(-1).numpy()
-            mv.open = np.zeros_like(mirror)
-            mv.open[mirror] = t > open_transmittance
-        planar += 1
-        out.append(mv)
-    return out, {"planar_views": planar}
+        whole = MirrorView(view, shiny_px)
+        planes = []
+        for region in planar_components(whole.points, whole.normals, shiny_px, min_pixels):
+            if _width_px(region) < min_width_px:  # a strip (one column of a cylinder): no stereo in it
+                stats["ignored"] += 1
+                continue
+            plane = fit_plane(whole.points[region], cam.origin, tol=tol)
+            # the normals must agree with the plane: they say curved where the points look flat
+            if plane is None or np.quantile(np.abs(whole.normals[region] @ plane[0]), 0.1) < cos_max:
+                stats["ignored"] += 1
+                continue
+            mv = MirrorView(view, region)
+            mv.normal, mv.offset = plane
+            if trace_fn is not None:
+                x = torch.from_numpy(mv.points[region]).float()
+                r = torch.from_numpy(mv.dirs[region]).float()
+                t = trace_fn(x + step * r, r, gaussians).transmittance.reshape(-1).numpy()
+                mv.open = np.zeros_like(region)
+                mv.open[region] = t > open_transmittance
+            planes.append(mv)
+        if planes:
+            pixels = [int(m.open.sum()) for m in planes]
+            stats["per_view"].append((v, len(planes), sum(pixels)))
+            stats["planes"] += len(planes)
+            stats["planar_views"] += 1
+            stats["pixels"] += sum(pixels)
+            out.extend(planes)
+    for v, n, px in stats["per_view"]:
+        log.info("mirror stereo: view %d, %d mirror plane(s), %d open mirror pixels", v, n, px)
+    return out, stats
 
 
 def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray, hi: np.ndarray, t_min: float,
                depths: int = 96, window: int = 2, min_views: int = 3, ratio: float = 0.9,
                max_cost: float = 0.2, best_fraction: float = 1.0, min_contrast: float = 0.1,
-               max_basin: float = 0.4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               max_basin: float = 0.4) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Plane sweep of one reference view's open mirror pixels (module docstring). Returns the kept pixels'
-    (points [M, 3], colours [M, 3], virtual distances [M])."""
+    (points [M, 3], colours [M, 3], virtual distances [M]) and how many otherwise clear pixels were dropped
+    because their best depth lies on the edge of the swept range."""
     h, w = ref.open.shape
     pix = np.nonzero(ref.open.reshape(-1))[0]
     x = ref.points.reshape(-1, 3)[pix]
@@ -187,23 +248,25 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     contrast = (np.sqrt(np.maximum(var, 0.0)) / np.maximum(mean, 1e-6)).reshape(-1)[pix]
     keep = np.isfinite(c2) & (c1 < max_cost) & (c1 < ratio * c2) & (contrast > min_contrast)
     keep &= (right - left) <= max_basin * depths
+    # a best depth on the sweep's first or last plane is not a minimum (the surface may lie beyond): not kept
+    edge = keep & ((best == 0) | (best == depths - 1))
+    keep &= ~edge
     tk = t[rows, best][keep]
-    return x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk)
+    return x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk), int(edge.sum())
 
 
 @torch.no_grad()
 def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6000, far_scale: float = 3.0,
                             opacity: float = 0.3, seed: int = 0, dtype=torch.float32,
                             **sweep) -> tuple[Gaussians | None, dict]:
-    """Up to ``count`` Gaussians where the plane sweep of every planar-mirror view finds a clear depth
+    """Up to ``count`` Gaussians where the plane sweep of every planar mirror (of every view) finds a clear depth
     (module docstring). Candidates lie between the mirror and where the reflected ray leaves the cube about
     the centre of the current Gaussians' box, ``far_scale`` times its largest side (an object seen only in a
     mirror may lie well outside the box of what the cameras see directly). ``trace_fn(origins, dirs,
     gaussians)`` decides which reflections are open (None: all are). Returns (Gaussians or None, statistics
     for the log)."""
-    mvs, stats = mirror_views(rays, trace_fn, gaussians)
-    stats.update(kept=0, added=0)
-    usable = [m for m in mvs if m is not None]
+    usable, stats = mirror_views(rays, trace_fn, gaussians)
+    stats.update(kept=0, added=0, edge=0)
     if len(usable) < 2 or count <= 0:
         return None, stats
     lo, hi, step = scene_box(gaussians)
@@ -211,10 +274,14 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
     pos, colour, dist, fl = [], [], [], []
     for i, ref in enumerate(usable):
-        p, c, d = sweep_view(ref, usable[:i] + usable[i + 1:], rays.views, lo, hi, 20 * step, **sweep)
+        p, c, d, edge = sweep_view(ref, usable[:i] + usable[i + 1:], rays.views, lo, hi, 20 * step, **sweep)
+        stats["edge"] += edge
         pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))
     pos, colour, dist, fl = (np.concatenate(a) for a in (pos, colour, dist, fl))
     stats["kept"] = len(pos)
+    if stats["edge"]:
+        stats["notes"] = [f"mirror stereo: {stats['edge']} pixels matched best on the edge of the depth sweep "
+                          f"(the cube {far_scale:g}x the scene's box): not placed; what they see may lie farther"]
     if len(pos) == 0:
         return None, stats
     pick = np.random.default_rng(seed).permutation(len(pos))[:count]

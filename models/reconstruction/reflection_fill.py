@@ -154,28 +154,49 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
     return matte_gaussians(pos, 0.5 * spacing.clamp_min(1e-6), 0.1, colour.clamp(0.0, 100.0), dtype), stats
 
 
-def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
-                    scales=tuple(1.0 + 0.1 * i for i in range(21)), k: int = 8) -> tuple[float, list[float]]:
-    """The box scale at which the open mirror rays ``x + t r`` (``bright`` [M] bool: highlight or dark) leave the
-    box (``lo``, ``hi`` scaled about its centre) most consistently: for each scale, the mean fraction of
-    highlight exits among the ``k`` nearest exits of each highlight exit (a plane sweep). At the light's true
-    distance the highlight rays of all views end on the light's patch and the dark ones around it; nearer or
-    farther, rays of different views end interleaved. Returns (best scale, purity per scale)."""
+def _exit_purity(x, r, b, lo, hi, s: float, k: int) -> float:
     from scipy.spatial import cKDTree
 
     centre, half = (lo + hi) / 2, (hi - lo) / 2
+    exits = (x + box_exit(x, r, centre - s * half, centre + s * half)[:, None] * r).double().cpu().numpy()
+    kk = min(k + 1, len(exits))
+    if b.sum() == 0 or kk < 2:
+        return 0.0
+    _, nn = cKDTree(exits).query(exits[b], k=kk)
+    return float(b[nn[:, 1:]].mean())
+
+
+def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                    scales=tuple(1.0 + 0.1 * i for i in range(21)), k: int = 8,
+                    max_scale: float = 20.0) -> tuple[float, list[float], list[str]]:
+    """The box scale at which the open mirror rays ``x + t r`` (``bright`` [M] bool: highlight or dark) leave the
+    box (``lo``, ``hi`` scaled about its centre) most consistently: for each scale, the mean fraction of
+    highlight exits among the ``k`` nearest exits of each highlight exit (a plane sweep). At the light's true
+    distance the highlight rays of all views end on the light's patch and the dark ones around them; nearer or
+    farther, rays of different views end interleaved. A best scale at the far end of ``scales`` is not a
+    minimum: the range is extended (5 % steps) until the purity falls past the best or ``max_scale`` is
+    reached. Returns (best scale, the scales tried, purity per scale, notes): a note says when the best
+    still lies on the range's edge (the light may be farther, or inside the box)."""
     b = bright.cpu().numpy()
-    purity = []
-    for s in scales:
-        exits = (x + box_exit(x, r, centre - s * half, centre + s * half)[:, None] * r).double().cpu().numpy()
-        kk = min(k + 1, len(exits))
-        if b.sum() == 0 or kk < 2:
-            purity.append(0.0)
-            continue
-        _, nn = cKDTree(exits).query(exits[b], k=kk)
-        purity.append(float(b[nn[:, 1:]].mean()))
+    scales = list(scales)
+    purity = [_exit_purity(x, r, b, lo, hi, s, k) for s in scales]
+    while int(np.argmax(purity)) == len(purity) - 1 and scales[-1] < max_scale and max(purity) > 0:
+        for _ in range(10):  # past the edge: on until the purity has clearly turned
+            scales.append(min(scales[-1] * 1.05, max_scale))
+            purity.append(_exit_purity(x, r, b, lo, hi, scales[-1], k))
+            if scales[-1] >= max_scale:
+                break
     best = int(np.argmax(purity))
-    return float(scales[best]), purity
+    notes = []
+    if max(purity) <= 0:
+        notes.append("highlight fill: no scale of the box makes the highlight reflections meet")
+    elif best == len(purity) - 1:
+        notes.append(f"highlight fill: box scale {scales[best]:.2f} is the edge of the search (max_scale "
+                     f"{max_scale:g}): the light may lie farther; its emitters sit on that box")
+    elif best == 0:
+        notes.append(f"highlight fill: box scale {scales[0]:.2f} is the near edge of the search: the light "
+                     "may lie inside the scene's box; its emitters sit on the box")
+    return float(scales[best]), scales, purity, notes
 
 
 @torch.no_grad()
@@ -197,7 +218,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     where its highlight ray leaves that box, emitting the pixel's reflected radiance (diffuse colour), with
     ``opacity``, matte (roughness 1, F0 0.04), normal 0, and scale the distance to its nearest neighbour (so
     they tile the light's patch). Positions a training camera sees to be empty are dropped (``seen_empty``)."""
-    stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0}
+    stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
+             "notes": []}
     t = rays.targets
     found = mirror_rays(rays, max_rays=len(rays), seed=seed)
     if found is None or "specular" not in t or "diffuse" not in t:
@@ -224,8 +246,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     stats["highlight_rays"] = len(keep)
     if len(keep) == 0:
         return None, stats
-    scale_box, _ = sweep_box_scale(x, r, bright, lo, hi)
-    stats["box_scale"] = scale_box
+    scale_box, scales, _, stats["notes"] = sweep_box_scale(x, r, bright, lo, hi)
+    stats["box_scale"], stats["box_scale_range"] = scale_box, f"{scales[0]:.1f}-{scales[-1]:.2f}"
     centre, half = (lo + hi) / 2, (hi - lo) / 2
     lo, hi = centre - scale_box * half, centre + scale_box * half
     x, r, radiance = x[keep], r[keep], radiance[keep]
