@@ -138,9 +138,14 @@ def describe(error, section: str) -> str:
     kind, value, limit = error.validator, error.instance, error.validator_value
     words = {"minimum": ">=", "maximum": "<=", "exclusiveMinimum": ">", "exclusiveMaximum": "<"}
     if kind == "additionalProperties" and isinstance(value, dict):
+        import difflib
+
         known = sorted(error.schema.get("properties", {}))
         bad = sorted(set(value) - set(known))
-        return f"unknown {where} option(s) {bad}; known: {known}"
+        close = {b: difflib.get_close_matches(str(b), known, n=1) for b in bad}
+        hint = "; ".join(f"did you mean {c[0]!r} for {b!r}?" for b, c in close.items() if c)
+        label = "top-level" if where == "<top>" else where
+        return f"unknown {label} option(s) {bad}; known: {known}" + (f" ({hint})" if hint else "")
     if kind == "enum":
         text = f"{where} must be one of {', '.join(str(v) for v in limit)}, got {value!r}"
     elif kind in words:
@@ -156,6 +161,38 @@ def describe(error, section: str) -> str:
     # a conditional rule (if / then) may say why in its description
     hint = error.schema.get("description") if "then" in error.schema_path and isinstance(error.schema, dict) else None
     return f"{text} ({hint})" if hint else text
+
+
+def coerce(value: Any, schema: dict) -> Any:
+    """``value`` with the strings that ``schema`` wants as numbers or booleans converted (Snakemake's
+    ``--config 'reconstruct={"iterations": 200}'`` arrives as strings); what does not convert is left for the
+    validation to name."""
+    if not isinstance(schema, dict):
+        return value
+    if isinstance(value, dict):
+        props = schema.get("properties", {})
+        extra = schema.get("additionalProperties")
+        return {k: coerce(v, props.get(k, extra if isinstance(extra, dict) else {})) for k, v in value.items()}
+    if isinstance(value, list):
+        return [coerce(v, schema.get("items", {})) for v in value]
+    if not isinstance(value, str):
+        return value
+    types = schema.get("type", [])
+    for kind in (types if isinstance(types, list) else [types]):
+        if kind == "string":
+            return value
+        try:
+            if kind == "integer":
+                return int(value)
+            if kind == "number":
+                return float(value)
+        except ValueError:
+            continue
+        if kind == "boolean" and value.lower() in ("true", "false"):
+            return value.lower() == "true"
+        if kind == "null" and value.lower() in ("null", "none", "~"):
+            return None
+    return value
 
 
 def validate(cls, d: Any, section: str) -> None:

@@ -123,11 +123,26 @@ def load_config(scene: str | None = None, presets: Iterable[str] = (), overrides
         if not path.is_file():
             raise ConfigError(f"unknown preset {preset!r}; known presets: {', '.join(known('presets'))}")
         config = deep_merge(config, read_yaml(path))
-    config = deep_merge(config, overrides)
+    config = deep_merge(config, coerce_overrides(overrides))
     config["scene"] = scene
     config["presets"] = preset_list
     validate(config)
     return config
+
+
+def coerce_overrides(overrides: dict) -> dict:
+    """Command-line values (strings from Snakemake's ``--config``) converted to the types the schemas want."""
+    from models.settings import coerce
+
+    out = coerce(overrides, yaml.safe_load((SCHEMAS / "config.schema.yaml").read_text()))
+    for section, schema in SECTION_SCHEMAS.items():
+        *parents, last = section.split(".")
+        node = out
+        for key in parents:
+            node = node.get(key) if isinstance(node, dict) else None
+        if isinstance(node, dict) and isinstance(node.get(last), dict):
+            node[last] = coerce(node[last], yaml.safe_load((SCHEMAS / schema).read_text()))
+    return out
 
 
 def validate(config: dict) -> None:

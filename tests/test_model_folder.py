@@ -75,6 +75,19 @@ def test_render_stage_uses_the_model_settings(p2):
     _assert_rendered_with_p2(root / "renders" / "test" / f"{view.name}.exr", g, view.camera)
     stage = json.loads((root / "renders" / "stage.json").read_text())
     assert stage["model"]["tracer"]["kernel_p"] == 2 and stage["path"]["max_path_length"] == 2
+    assert stage["warnings"] == []
+
+
+def test_render_without_reflection_samples_says_so(p2, caplog):
+    from stages.render.__main__ import main as render
+
+    root, capture = p2
+    with caplog.at_level(logging.WARNING):
+        assert render(["--config-json", json.dumps({**RENDER, "spp": 0}), "--model", str(root / "model"),
+                       "--capture", str(capture), "--out", str(root / "renders0"), "--threads", "1"]) == 0
+    stage = json.loads((root / "renders0" / "stage.json").read_text())
+    assert stage["warnings"] == ["render.spp 0: no reflection samples, the specular layer is black and final = diffuse"]
+    assert "render.spp 0" in caplog.text
 
 
 def test_evaluate_stage_uses_the_model_settings(p2):

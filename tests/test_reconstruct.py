@@ -95,6 +95,18 @@ def test_decisions_switch_off_missing(demo):
     assert "f0" not in trainer.weights
 
 
+def test_warmup_past_the_end_says_reflections_never_turn_on(demo, caplog):
+    import logging
+
+    capture, init = demo
+    with caplog.at_level(logging.WARNING):
+        trainer = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, warmup=160)), tracer())
+    assert not trainer.reflections
+    text = "\n".join(trainer.decisions)
+    assert "reflections: never on (warmup 160 >= iterations 160)" in text and "on after step" not in text
+    assert "reflections: never on" in caplog.text
+
+
 def test_config_errors():
     with pytest.raises(ValueError, match=r"unknown reconstruct option\(s\) \['iters'\]"):
         ReconstructConfig.from_dict({"iters": 3})

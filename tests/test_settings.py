@@ -116,3 +116,38 @@ def test_moved_tracer_options_say_where_they_went():
     with pytest.raises(ValueError, match="reconstruct.kernel_p is now reconstruct.tracer.kernel_p"):
         ReconstructConfig.from_dict({"kernel_p": 2})
     assert ReconstructConfig.from_dict({"tracer": {"kernel_p": 2}}).tracer.kernel_p == 2
+
+
+def test_top_level_typos_are_refused_with_a_suggestion():
+    from stages.config import ConfigError
+
+    for typo, meant in (("presset", "presets"), ("reconstuct", "reconstruct")):
+        with pytest.raises(ConfigError, match=rf"unknown top-level option\(s\) \['{typo}'\].*did you mean '{meant}'"):
+            load_config("demo", overrides={typo: "ci" if typo == "presset" else {"iterations": 200}})
+
+
+def test_command_line_strings_are_coerced_by_the_schema():
+    """Snakemake hands nested --config values over as strings: they take the schema's types."""
+    from stages.config import ConfigError
+
+    config = load_config("demo", overrides={"reconstruct": {"iterations": "200", "warmup": "20",
+                                                            "tracer": {"kernel_p": "2", "max_replay_capacity": "null",
+                                                                       "window": "2.5"}},
+                                            "render": {"denoise": "false"}, "buffernet": {"train": {"iterations": "7"}}})
+    assert config["reconstruct"]["iterations"] == 200 and config["reconstruct"]["tracer"] == \
+        {"kernel_p": 2, "max_replay_capacity": None, "window": 2.5}
+    assert config["render"]["denoise"] is False and config["buffernet"]["train"]["iterations"] == 7
+    ReconstructConfig.from_dict(config["reconstruct"])
+    with pytest.raises(ConfigError, match="reconstruct.iterations must be >= 1, got -5"):
+        load_config("demo", overrides={"reconstruct": {"iterations": "-5"}})
+    with pytest.raises(ConfigError, match="reconstruct.iterations must be of type integer, got str 'many'"):
+        load_config("demo", overrides={"reconstruct": {"iterations": "many"}})
+
+
+def test_config_json_by_hand_is_validated_like_the_workflow(tmp_path, capsys):
+    from stages.reconstruct.__main__ import main
+
+    rc = main(["--config-json", '{"iterations": -5}', "--capture", str(tmp_path), "--init", str(tmp_path / "p.ply"),
+               "--out", str(tmp_path / "model")])
+    assert rc != 0 and "reconstruct.iterations must be >= 1, got -5" in capsys.readouterr().err
+    assert not (tmp_path / "model").exists()

@@ -23,6 +23,17 @@ def test_bad_config_value_names_key(tmp_path):
     assert "config device must be one of cpu, cuda, got 'tpu' (schema config.schema.yaml)" in proc.stdout + proc.stderr
 
 
+def test_config_typo_and_string_numbers(tmp_path):
+    """A misspelt top-level key is an error naming it (it used to plan a full-size run); nested numbers given on
+    the command line arrive as strings and take the schema's types."""
+    proc = snakemake(tmp_path, "-n", "--config", "scene=demo", "presset=ci")
+    assert proc.returncode != 0
+    assert "unknown top-level option(s) ['presset']" in proc.stderr and "did you mean 'presets'" in proc.stderr
+    proc = snakemake(tmp_path, "-n", "-p", "--config", "scene=demo", 'reconstruct={"iterations": 200}')
+    assert proc.returncode == 0, proc.stderr
+    assert '"iterations": 200' in proc.stdout
+
+
 def test_dry_run_plans_synth(tmp_path):
     proc = snakemake(tmp_path, "-n", "--config", "scene=demo")
     assert proc.returncode == 0, proc.stderr

@@ -97,6 +97,12 @@ class Trainer:
         if peak < 1e-4:
             self.decisions.append(f"reflections: specular buffers are ~0 (max {peak:.2e}), primary rays only")
             return False
+        if self.config.warmup >= self.config.iterations:
+            message = (f"reflections: never on (warmup {self.config.warmup} >= iterations "
+                       f"{self.config.iterations}): the model learns no reflections; lower reconstruct.warmup")
+            log.warning(message)
+            self.decisions.append(message)
+            return False
         self.decisions.append(f"reflections: on after step {self.config.warmup}, "
                               f"max path length {self.config.max_path_length}")
         return True
@@ -223,10 +229,15 @@ class Trainer:
         return total, metrics
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str) -> None:
-        """Append a fill's Gaussians (if any) and log ``message % stats``."""
+        """Append a fill's Gaussians (if any), log ``message % stats`` and keep it among the decisions (with
+        each of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
             self._replace(extra=fill)
         log.info("step %d: added %s", self.step, message % stats)
+        self.decisions.append(f"step {self.step}: added {message % stats}")
+        for note in stats.get("notes", ()):
+            log.warning("step %d: %s", self.step, note)
+            self.decisions.append(f"step {self.step}: {note}")
 
     def train_step(self) -> dict:
         cfg = self.config
@@ -246,12 +257,14 @@ class Trainer:
             if cfg.mirror_stereo_count > 0:
                 self._add_fill(*mirror_stereo_gaussians(self.rays, self.backend.trace, scene,
                                                         cfg.mirror_stereo_count, seed=cfg.seed),
-                               "%(added)d Gaussians where the reflections of %(planar_views)d planar-mirror views "
-                               "agree in depth (%(kept)d pixels matched)")
+                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
+                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
+                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched)")
             if cfg.highlight_fill:
                 self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
                                "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
-                               "(of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f)")
+                               "(of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, searched "
+                               "%(box_scale_range)s)")
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)

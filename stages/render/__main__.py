@@ -52,6 +52,11 @@ def main(argv: list[str] | None = None) -> int:
     tracer.update(gaussians)
     log.info("rendering with the model's settings (%s): kernel_p %d, max path length %d, sampler %s",
              settings.source, tracer.config.kernel_p, path.max_path_length, path.sampler)
+    warnings = []
+    if config.spp == 0 and path.max_path_length > 1:
+        warnings.append("render.spp 0: no reflection samples, the specular layer is black and final = diffuse")
+    for w in warnings:
+        log.warning(w)
     generator = torch.Generator().manual_seed(config.seed)
     start = time.perf_counter()
     test_views = capture.split("test") or capture.split("train")
@@ -66,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     video = _video(frames, args.out / "path") if config.video and frames else None
     write_stage_json(args.out, "render", section, time.perf_counter() - start, device=args.device,
                      extra={"seconds_per_view": timings, "video": str(video) if video else None,
+                            "warnings": warnings,
                             "model": settings.to_dict(), "path": {"max_path_length": path.max_path_length,
                                                                   "sampler": path.sampler}})
     return 0
