@@ -28,6 +28,7 @@ import warp as wp
 
 from models.tracer.blend import write_outputs
 from models.tracer.hit import eval_packed, hit_less
+from models.tracer.kernels_ordered import safe_inv
 from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
 
 ID_MAX = wp.constant(2147483647)
@@ -38,15 +39,6 @@ FAR = wp.constant(3.0e38)
 def margin(t: float) -> float:
     """Float slack of the window bounds (ray-parameter units)."""
     return 1.0e-4 * (1.0 + wp.abs(t))
-
-
-@wp.func
-def inv_component(x: float) -> float:
-    if wp.abs(x) < 1.0e-30:
-        if x < 0.0:
-            return -1.0e30
-        return 1.0e30
-    return 1.0 / x
 
 
 @wp.func
@@ -126,7 +118,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
     n_acc = int(0)
     cand = int(0)
     obb = int(0)
-    inv = wp.vec3(inv_component(d[0]), inv_component(d[1]), inv_component(d[2]))
+    inv = wp.vec3(safe_inv(d[0]), safe_inv(d[1]), safe_inv(d[2]))
     scene = slab(o, inv, prm.scene_lo, prm.scene_hi)
     t_end = scene[1]
     done = int(0)
