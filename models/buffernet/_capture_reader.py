@@ -19,6 +19,7 @@ import numpy as np
 
 from models.capture import Camera, CaptureError, read_capture, read_view_buffers
 from models.capture.io import _camera, _resolve_image
+from models.capture.nerfstudio_layout import list_splits
 from models.capture.layers import REGISTRY
 from models.capture.types import SPLITS
 
@@ -94,11 +95,13 @@ class CaptureReader:
         frames = tf.get("frames")
         if not isinstance(frames, list) or not frames:
             raise DatasetError(f"{tf_path}: 'frames' must be a non-empty list")
+        listed = list_splits(tf, tf_path)  # nerfstudio's *_filenames lists; None: listed nowhere, left out
         for i, frame in enumerate(frames):
             where = f"{tf_path} frame {i}"
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise DatasetError(f"{where}: needs 'file_path' and 'transform_matrix'")
-            if split is not None and frame.get("split", "train") != split:
+            view_split = frame.get("split", "train") if listed is None else listed[i]
+            if view_split is None or (split is not None and view_split != split):
                 continue
             camera = _camera(tf, frame, where)
             camera.check(where)

@@ -3,6 +3,7 @@
 A contract other tools write too: readers ignore channels they do not know and
 also accept the paper's released synthetic layout (``transforms_{train,test}.json``) and COLMAP
 folders (``sparse/`` + ``images/``, with the paper's real-scene ``priors/``: ``colmap_layout.py``).
+nerfstudio datasets (PNG / JPEG views decoded from sRGB, split lists, ``ply_file_path``): ``nerfstudio_layout.py``.
 SfM points of a capture: ``points.py``.
 """
 

@@ -16,8 +16,9 @@ from models.settings import read_yaml_mapping
 
 from .camera import Camera
 from .errors import CaptureError
-from .exr import read_exr_channels, write_exr_channels
+from .exr import read_image_channels, srgb_encoded, write_exr_channels
 from .layers import LAYER_CHANNELS, LAYERS, layer_prefix
+from .nerfstudio_layout import check_camera_model, list_splits, read_transforms
 from .types import SPLITS, Capture, CaptureMeta, View, check_buffer
 
 INTRINSICS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
@@ -89,29 +90,40 @@ def read_capture(path: str | Path, layers: Iterable[str] | None = None, check: b
         unknown = [l for l in layers if l not in LAYERS]
         if unknown:
             raise ValueError(f"unknown layer(s) {unknown} (known: {', '.join(LAYERS)})")
-    try:
-        tf = json.loads(tf_path.read_text())
-    except json.JSONDecodeError as e:
-        raise CaptureError(f"{tf_path}: invalid JSON ({e})") from None
+    tf = read_transforms(tf_path)
     frames = tf.get("frames")
     if not isinstance(frames, list) or not frames:
         raise CaptureError(f"{tf_path}: 'frames' must be a non-empty list")
+    listed = list_splits(tf, tf_path)  # nerfstudio's train_filenames / test_filenames (nerfstudio_layout.py)
 
-    views = []
+    views, decoded = [], 0
     for i, frame in enumerate(frames):
         where = f"{tf_path} frame {i}"
-        if "file_path" not in frame or "transform_matrix" not in frame:
+        if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise CaptureError(f"{where}: needs 'file_path' and 'transform_matrix'")
+        split = frame.get("split", "train")
+        if listed is not None:
+            if "split" in frame and listed[i] is not None and frame["split"] != listed[i]:
+                raise CaptureError(f"{where} ({frame['file_path']}): split {frame['split']!r} but the *_filenames "
+                                   f"lists put it in {listed[i]!r}")
+            split = listed[i]
+            if split is None:  # listed in no split: left out, as nerfstudio does
+                continue
         image = _resolve_image(path, frame["file_path"], where)
         camera = _camera(tf, frame, where)
-        split = frame.get("split", "train")
         if split not in SPLITS:
             raise CaptureError(f"{where} ({frame['file_path']}): unknown split {split!r} (expected one of {', '.join(SPLITS)})")
         camera.check(f"{where} ({frame['file_path']})")
         buffers = read_view_buffers(image, camera.height, camera.width, layers, check=check)
+        decoded += image.suffix.lower() != ".exr" and srgb_encoded(image)
         views.append(View(name=Path(frame["file_path"]).stem, camera=camera, split=split, buffers=buffers))
 
     meta = _read_meta(path / "capture.yaml")
+    if decoded:
+        meta.extra["rgb"] = f"{decoded} 8-bit sRGB image(s) decoded to linear (not HDR)"
+    if listed is not None:
+        meta.extra["splits"] = {"from": [k for k in ("train_filenames", "val_filenames", "test_filenames") if k in tf],
+                                "left_out": sum(s is None for s in listed)}
     capture = Capture(views=views, meta=meta)
     names = [v.name for v in views]
     if len(set(names)) != len(names):
@@ -122,8 +134,9 @@ def read_capture(path: str | Path, layers: Iterable[str] | None = None, check: b
 def read_view_buffers(
     image: Path, height: int, width: int, layers: Iterable[str] | None = None, check: bool = True
 ) -> dict[str, np.ndarray]:
-    """Known layers of one view's EXR as float32 ``[H, W, C]``; validates channel counts, size and finiteness."""
-    channels = read_exr_channels(image)
+    """Known layers of one view's EXR as float32 ``[H, W, C]``; validates channel counts, size and finiteness.
+    A PNG / JPEG view (8-bit, sRGB unless the file says linear) gives its R, G, B decoded to linear."""
+    channels = read_image_channels(image)
     wanted = list(LAYERS) if layers is None else list(layers)
     buffers = {}
     for layer in LAYERS:
@@ -163,9 +176,12 @@ def _camera(tf: dict, frame: dict, where: str) -> Camera:
         if value is None:
             raise CaptureError(f"{where}: intrinsic {key!r} missing (neither in the frame nor at top level)")
         values[key] = value
+    model = check_camera_model(tf, frame, where)
     for key in DISTORTION:
         if float(frame.get(key, tf.get(key, 0.0)) or 0.0) != 0.0:
-            raise CaptureError(f"{where}: distortion {key}={frame.get(key, tf.get(key))} is not supported; undistort to PINHOLE first")
+            raise CaptureError(f"{where}: distortion {key}={frame.get(key, tf.get(key))} is not supported "
+                               f"(camera_model {model}, image {frame.get('file_path')!r}); undistort the images to "
+                               "PINHOLE first (e.g. python -m stages.poses on the photos)")
     c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
     if c2w.shape == (3, 4):
         c2w = np.vstack([c2w, [0, 0, 0, 1]])

@@ -9,6 +9,9 @@ Contract (beside the capture format of ARCHITECTURE.md):
                          in the same world frame; read when points3D.ply is absent
 ```
 
+A nerfstudio folder (``nerfstudio_layout.py``) names its points in transforms.json (``ply_file_path``, read
+first: the file says so) or has ns-process-data's ``colmap/sparse/0`` (read last, moved by ``applied_transform``).
+
 ``python -m stages.poses`` writes both; the paper's real-scene layout has ``sparse/``.
 Readers return linear-RGB colours (sRGB decoded), the colour space of the capture's buffers.
 """
@@ -88,14 +91,29 @@ def read_colmap_points(model_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 def read_sfm_points(capture_dir: str | Path) -> tuple[np.ndarray, np.ndarray, Path] | None:
     """SfM points of a capture folder: ``(xyz [N, 3], linear rgb [N, 3] float64, source file)`` from
-    ``points3D.ply``, else from the ``sparse/`` COLMAP model; None when it has neither."""
+    transforms.json's ``ply_file_path``, else ``points3D.ply``, else the ``sparse/`` COLMAP model, else
+    nerfstudio's ``colmap/sparse/0``; None when it has none of them."""
+    found = find_sfm_points(capture_dir)
+    if found is None:
+        return None
+    xyz, rgb, source = found
+    return xyz, srgb_to_linear(rgb / 255.0), source
+
+
+def find_sfm_points(capture_dir: str | Path) -> tuple[np.ndarray, np.ndarray, Path] | None:
+    """As ``read_sfm_points`` with the colours as stored: 8-bit sRGB ``[N, 3]`` uint8."""
+    from .nerfstudio_layout import colmap_folder_points, ply_file_points
+
     capture_dir = Path(capture_dir)
+    found = ply_file_points(capture_dir)
+    if found is not None:
+        return found
     ply = capture_dir / POINTS_FILE
     if ply.is_file():
         xyz, rgb = read_points_ply(ply)
-        return xyz, srgb_to_linear(rgb / 255.0), ply
+        return xyz, rgb, ply
     model = colmap_model_dir(capture_dir)
     if model is not None:
         xyz, rgb = read_colmap_points(model)
-        return xyz, srgb_to_linear(rgb / 255.0), model
-    return None
+        return xyz, rgb, model
+    return colmap_folder_points(capture_dir)
