@@ -25,8 +25,9 @@ def viewport_size(aspect: float, pixels: int) -> tuple[int, int]:
         raise ValueError(f"aspect must be a positive number, got {aspect!r}")
     if pixels < 1:
         raise ValueError(f"pixels must be >= 1, got {pixels}")
-    height = max(1, round(math.sqrt(pixels / aspect)))
-    width = max(1, round(height * aspect))
+    # neither side beyond ``pixels`` (a canvas of absurd aspect gets a thin image, not an enormous one)
+    height = min(max(1, round(math.sqrt(pixels / aspect))), pixels)
+    width = min(max(1, round(height * aspect)), pixels)
     return width, height
 
 
@@ -43,12 +44,15 @@ def camera_from_viser(position, wxyz, fov_y: float, aspect: float, pixels: int) 
     canvas aspect (not the rounded pixel aspect), so the image maps exactly onto the canvas."""
     if not (0 < fov_y < math.pi):
         raise ValueError(f"fov_y must be in (0, pi) radians, got {fov_y!r}")
+    q, t = np.asarray(wxyz, dtype=np.float64), np.asarray(position, dtype=np.float64)
+    if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(q).all() and np.isfinite(t).all()):
+        raise ValueError(f"camera pose must be a finite wxyz [4] and position [3], got {wxyz!r}, {position!r}")
     width, height = viewport_size(aspect, pixels)
-    w, x, y, z = (float(v) for v in wxyz)
+    w, x, y, z = (float(v) for v in q)
     r_cv = Rotation.from_quat([x, y, z, w]).as_matrix()  # scipy: xyzw
     c2w = np.eye(4)
     c2w[:3, :3] = r_cv @ GL_FROM_CV
-    c2w[:3, 3] = np.asarray(position, dtype=np.float64)
+    c2w[:3, 3] = t
     tan_y = math.tan(fov_y / 2)
     fl_y = height / 2 / tan_y
     fl_x = width / 2 / (aspect * tan_y)

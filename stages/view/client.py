@@ -31,6 +31,7 @@ class ClientLoop:
         self.first_frame_s: dict[int, float] = {}  # scene version -> seconds from the edit to its first frame
         self._last_render_t = None
         self._version = -1  # scene version of the frame being rendered
+        self._failed = ""  # the last render failure shown (cleared by the next frame sent)
         client.camera.on_update(self._camera_moved)
         self.thread = threading.Thread(target=self._run, name=f"view-client-{client.client_id}", daemon=True)
         self.thread.start()
@@ -53,8 +54,8 @@ class ClientLoop:
         cam = self.client.camera
         try:
             return camera_from_viser(cam.position, cam.wxyz, cam.fov, cam.aspect, self.app.pixels)
-        except (AssertionError, ValueError, ZeroDivisionError):  # no camera message yet / zero-size canvas
-            return None
+        except (AssertionError, ValueError, TypeError, ZeroDivisionError):  # no camera message yet / zero-size
+            return None  # canvas / a pose that is no camera (NaN, zero quaternion): nothing to render
 
     def _run(self) -> None:
         while not self.stopped.is_set():
@@ -62,9 +63,12 @@ class ClientLoop:
                 if not self._tick():
                     self.wake.wait(0.05)
                     self.wake.clear()
-            except Exception:  # keep serving: log, show, and go on with the next frame
-                log.exception("render loop of client %s", self.client.client_id)
-                self.app._error("render failed; see the server log")
+            except Exception as e:  # keep serving: log, show this tab, and go on with the next frame
+                message = f"render failed: {type(e).__name__}: {e}"
+                if message != self._failed:  # (once, not every second while it keeps failing)
+                    log.exception("render loop of client %s", self.client.client_id)
+                    self.app._error(message, self.client)
+                self._failed = message
                 self.wake.wait(1.0)
                 self.wake.clear()
 
@@ -94,6 +98,7 @@ class ClientLoop:
             self._last_render_t = now
         self.last_frame = frame
         self.frames_sent += 1
+        self._failed = ""
         self.app._frame_shown(self)
         return True
 

@@ -9,6 +9,7 @@ primary segment is deterministic and is traced once per accumulation (``PrimaryC
 
 from __future__ import annotations
 
+import numbers
 import threading
 import time
 from dataclasses import dataclass
@@ -38,14 +39,12 @@ class ViewSettings:
     seed: int = 0  # generator seed of every accumulation (equal seed + spp = equal image)
 
     def __post_init__(self) -> None:
-        if self.layer not in SHOWN_LAYERS:
+        if not isinstance(self.layer, str) or self.layer not in SHOWN_LAYERS:
             raise ValueError(f"layer must be one of {SHOWN_LAYERS}, got {self.layer!r}")
-        if not isinstance(self.max_path_length, int) or self.max_path_length < 1:
-            raise ValueError(f"max_path_length must be an int >= 1, got {self.max_path_length!r}")
-        if self.max_spp < 1:
-            raise ValueError(f"max_spp must be >= 1, got {self.max_spp}")
-        if self.denoise_after < 0:
-            raise ValueError(f"denoise_after must be >= 0, got {self.denoise_after}")
+        for name, least in (("max_path_length", 1), ("max_spp", 1), ("denoise_after", 0), ("seed", None)):
+            v = getattr(self, name)
+            if not isinstance(v, numbers.Integral) or isinstance(v, bool) or (least is not None and v < least):
+                raise ValueError(f"{name} must be an int{f' >= {least}' if least is not None else ''}, got {v!r}")
 
 
 @dataclass

@@ -195,6 +195,11 @@ class ViewerSession:
                 return self._tracked
             return select(self._scene, parse_selection(self.selection, "selection"))
 
+    def selected_means(self) -> np.ndarray:
+        """[M, 3] float32 means of the selected Gaussians of the edited scene (mask and scene of one version)."""
+        with self._lock:
+            return self._scene.means.detach()[self.selection_mask()].float().cpu().numpy()
+
     def selection_centre(self) -> np.ndarray | None:
         """Centre of the bounds of the selected means (the default pivot), or None when nothing is selected."""
         with self._lock:
