@@ -2,8 +2,8 @@
 rotate / scale / duplicate / delete them or change their materials.
 
 ``spec.py`` parses the edit YAML, ``select.py`` evaluates selections, ``ops.py`` holds the operations,
-``apply.py`` applies a named edit. Rendering the edited scene is ``models.rendering``; scoring it against a
-ground truth is ``models.metrics.edits``.
+``albedo.py`` traces the light a ``set_albedo`` selection receives, ``apply.py`` applies a named edit.
+Rendering the edited scene is ``models.rendering``; scoring it against a ground truth is ``models.metrics.edits``.
 """
 
 from .apply import apply_edit

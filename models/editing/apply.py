@@ -7,6 +7,7 @@ import logging
 import torch
 
 from models.gaussians import Gaussians
+from models.pathtrace.paths import PathConfig, TraceFn
 
 from .ops import apply_op
 from .select import select
@@ -15,9 +16,12 @@ from .spec import EditSpec, EditSpecError
 log = logging.getLogger("models.editing")
 
 
-def apply_edit(g: Gaussians, spec: EditSpec) -> tuple[Gaussians, list[dict]]:
+def apply_edit(g: Gaussians, spec: EditSpec, trace_fn: TraceFn | None = None,
+               path: PathConfig | None = None) -> tuple[Gaussians, list[dict]]:
     """``g`` with every op of ``spec`` applied in order, and per op what its selection caught.
-    Raises EditSpecError when a selection catches no Gaussian."""
+    ``trace_fn`` (``Tracer.trace``) and ``path`` (the model's path settings) serve the ops that trace the scene
+    (``set_albedo``); without a trace_fn those raise. Raises EditSpecError when a selection catches no Gaussian
+    or an op refuses its input."""
     report = []
     shared = select(g, spec.select) if spec.select is not None else None  # the edit's selection
     for i, op in enumerate(spec.ops):
@@ -30,7 +34,12 @@ def apply_edit(g: Gaussians, spec: EditSpec) -> tuple[Gaussians, list[dict]]:
         before = len(g)
         p = g.means.detach()[mask]
         bounds = [[round(x, 4) for x in p.amin(0).tolist()], [round(x, 4) for x in p.amax(0).tolist()]]
-        g = apply_op(g, op, mask)
+        try:
+            g = apply_op(g, op, mask, trace_fn, path)
+        except EditSpecError:
+            raise
+        except ValueError as e:
+            raise EditSpecError(f"edit {spec.name!r} op {i} ({op.kind}): {e}") from None
         if shared is not None and len(g) != before:  # keep the edit's selection aligned with the model
             shared = shared[~mask] if op.kind == "delete" else torch.cat([shared, shared.new_zeros(len(g) - before)])
         row = {"op": op.kind, "selection": sel.text, "selected": n, "selected_bounds": bounds,

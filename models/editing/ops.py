@@ -13,8 +13,12 @@ import math
 import torch
 
 from models.gaussians import Gaussians
+from models.pathtrace.paths import PathConfig, TraceFn
 
+from .albedo import albedo_radiance
 from .spec import Op
+
+NEEDS_TRACER = frozenset({"set_albedo"})  # ops that trace the scene (apply_op passes them trace_fn and path)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -127,6 +131,14 @@ def set_diffuse(g: Gaussians, mask: torch.Tensor, value) -> Gaussians:
     return _with(g, diffuse=_masked(g, mask, "diffuse", g.diffuse.new_tensor(value).expand(int(mask.sum()), 3)))
 
 
+def set_albedo(g: Gaussians, mask: torch.Tensor, value, samples: int, trace_fn: TraceFn | None = None,
+               path: PathConfig | None = None) -> Gaussians:
+    """Lambertian of albedo ``value``: diffuse radiance := albedo x the cosine-weighted mean of the radiance the
+    other Gaussians send to each selected one (albedo.py)."""
+    rgb = albedo_radiance(g, mask, value, samples, trace_fn, path)
+    return _with(g, diffuse=_masked(g, mask, "diffuse", rgb))
+
+
 def rgb_to_hsv(rgb: torch.Tensor) -> torch.Tensor:
     """[N, 3] RGB >= 0 -> [N, 3] (hue in [0, 6), saturation in [0, 1], value = max channel)."""
     v, imax = rgb.max(dim=-1)
@@ -158,10 +170,14 @@ def shift_diffuse_hsv(g: Gaussians, mask: torch.Tensor, hue: float, saturation: 
 _FUNCS = {
     "translate": translate, "rotate": rotate, "scale": scale, "duplicate": duplicate, "delete": delete,
     "set_roughness": set_roughness, "shift_roughness": shift_roughness, "multiply_roughness": multiply_roughness,
-    "set_f0": set_f0, "set_diffuse": set_diffuse, "shift_diffuse_hsv": shift_diffuse_hsv,
+    "set_f0": set_f0, "set_diffuse": set_diffuse, "shift_diffuse_hsv": shift_diffuse_hsv, "set_albedo": set_albedo,
 }
 
 
-def apply_op(g: Gaussians, op: Op, mask: torch.Tensor) -> Gaussians:
-    """Apply one parsed op to the Gaussians of ``mask`` [N] bool."""
+def apply_op(g: Gaussians, op: Op, mask: torch.Tensor, trace_fn: TraceFn | None = None,
+             path: PathConfig | None = None) -> Gaussians:
+    """Apply one parsed op to the Gaussians of ``mask`` [N] bool. ``trace_fn`` (Tracer.trace) and ``path`` (the
+    model's path settings) reach the ops of NEEDS_TRACER only; those raise ValueError without a trace_fn."""
+    if op.kind in NEEDS_TRACER:
+        return _FUNCS[op.kind](g, mask, **op.params, trace_fn=trace_fn, path=path)
     return _FUNCS[op.kind](g, mask, **op.params)

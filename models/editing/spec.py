@@ -9,6 +9,7 @@ plus (synthetic scenes) the same edit of the Mitsuba scene spec as ground truth:
       ops:
         - {op: translate, offset: [0.35, 0, 0.45]}        # uses the edit's select
         - {op: set_roughness, value: 0.1, select: {...}}  # its own selection
+        - {op: set_albedo, value: [0.8, 0.6, 0.1]}        # Lambertian albedo (traced; samples: 64 rays each)
       ground_truth:                            # models/synth/edits.py ops, by object name
         - {op: translate, object: mirror_ball, offset: [0.35, 0, 0.45]}
 
@@ -51,7 +52,9 @@ OPS: dict[str, tuple[frozenset, frozenset]] = {
     "set_f0": (frozenset({"value"}), frozenset()),
     "set_diffuse": (frozenset({"value"}), frozenset()),
     "shift_diffuse_hsv": (frozenset(), frozenset({"hue", "saturation", "value"})),
+    "set_albedo": (frozenset({"value"}), frozenset({"samples"})),
 }
+ALBEDO_SAMPLES = 64  # set_albedo: default cosine-distributed rays per Gaussian
 EDIT_KEYS = ("description", "select", "ops", "ground_truth")
 
 
@@ -242,6 +245,12 @@ def parse_op(d: Any, where: str, has_default: bool) -> Op:
         p["value"] = _scalar_or_rgb(d["value"], f"{where}.value", 0.0, 1.0)
     elif kind == "set_diffuse":
         p["value"] = _vec(d["value"], f"{where}.value", 0.0)
+    elif kind == "set_albedo":  # Lambertian albedo; the diffuse radiance is traced (albedo.py)
+        p["value"] = _vec(d["value"], f"{where}.value", 0.0, 1.0)
+        samples = d.get("samples", ALBEDO_SAMPLES)
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+            raise _fail(f"{where}.samples", f"must be an integer >= 1, got {samples!r}")
+        p["samples"] = samples
     elif kind == "shift_diffuse_hsv":
         if not set(d) & optional:
             raise _fail(where, "give at least one of 'hue' (degrees), 'saturation', 'value' (factors)")
