@@ -53,8 +53,11 @@ def read_yaml_mapping(path, error: type[Exception] = ValueError) -> dict:
 
     try:
         data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise error(f"{path}: invalid YAML ({e})") from None
+    except yaml.YAMLError as e:  # one line: where and what (PyYAML's own text spans several, with a caret)
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        what = " ".join(str(getattr(e, "problem", None) or e).split())
+        raise error(f"{path}: invalid YAML ({where}{what})") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

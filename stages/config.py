@@ -16,7 +16,6 @@ import sys
 from pathlib import Path
 from typing import Any, Iterable
 
-import jsonschema
 import yaml
 
 from models.settings import config_hash, describe, read_yaml_mapping, reject_unknown  # noqa: F401  (config_hash, reject_unknown:
@@ -64,6 +63,10 @@ def write_schemas() -> list[Path]:
         path.write_text(schema_text(schema))
         out.append(path)
     return out
+
+
+# sections only a scene of one kind has (presets leave them out for the other kinds)
+KIND_SECTIONS = {"synth": "synthetic", "poses": "photos"}
 
 
 class ConfigError(ValueError):
@@ -122,12 +125,19 @@ def load_config(scene: str | None = None, presets: Iterable[str] = (), overrides
         path = CONFIGS / "presets" / f"{preset}.yaml"
         if not path.is_file():
             raise ConfigError(f"unknown preset {preset!r}; known presets: {', '.join(known('presets'))}")
-        config = deep_merge(config, read_yaml(path))
+        config = deep_merge(config, for_kind(read_yaml(path), config.get("kind")))
     config = deep_merge(config, coerce_overrides(overrides))
     config["scene"] = scene
     config["presets"] = preset_list
     validate(config)
     return config
+
+
+def for_kind(preset: dict, kind: str | None) -> dict:
+    """The sections of ``preset`` that apply to a scene of ``kind``: a preset sizes the sections a scene has, it
+    does not give a photos scene a ``synth`` section (the ci preset's tiny synth sizes would make it a synthetic
+    scene without objects) nor a synthetic scene a ``poses`` one."""
+    return {k: v for k, v in preset.items() if KIND_SECTIONS.get(k, kind) == kind}
 
 
 def coerce_overrides(overrides: dict) -> dict:
@@ -156,7 +166,36 @@ def validate(config: dict) -> None:
             _check(value, SCHEMAS / schema, prefix=f"{section}.")
 
 
+def presets_section(presets: Iterable[str], section: str) -> dict:
+    """``section`` of configs/default.yaml with ``presets`` merged over it, in order (no scene)."""
+    config = read_yaml(CONFIGS / "default.yaml")
+    for preset in presets:
+        path = CONFIGS / "presets" / f"{preset}.yaml"
+        if not path.is_file():
+            raise ConfigError(f"unknown preset {preset!r}; known presets: {', '.join(known('presets'))}")
+        config = deep_merge(config, read_yaml(path))
+    node: Any = config
+    for key in section.split("."):
+        node = node.get(key, {}) if isinstance(node, dict) else {}
+    return node if isinstance(node, dict) else {}
+
+
+def check_section(section: str, value: dict) -> dict:
+    """One config section given alone (a stage's --config-json), coerced and validated as ``load_config`` does
+    the merged config's: ConfigError naming the bad key / value. Sections without a schema pass unchanged."""
+    if section not in SECTION_SCHEMAS:
+        return value
+    from models.settings import coerce
+
+    schema_path = SCHEMAS / SECTION_SCHEMAS[section]
+    value = coerce(value, yaml.safe_load(schema_path.read_text()))
+    _check(value, schema_path, prefix=f"{section}.")
+    return value
+
+
 def _check(data: Any, schema_path: Path, prefix: str) -> None:
+    import jsonschema  # here, not at the top: a stage's --help does not pay for it
+
     schema = yaml.safe_load(schema_path.read_text())
     error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(data))
     if error is not None:

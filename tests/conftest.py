@@ -9,6 +9,7 @@ import torch
 torch.set_num_threads(1)
 
 
+import re  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -16,6 +17,8 @@ from pathlib import Path  # noqa: E402
 import pytest  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+# Snakemake's note that it reads the workflow profile (profiles/default), printed by every run
+PROFILE_NOTE = re.compile(r"Using (profiles? .* and )?workflow specific profile .* for setting default command line")
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), "--cores", "2"]
 
 
@@ -27,7 +30,7 @@ def snakemake(workdir, *args, timeout=600):
 
 @pytest.fixture(scope="session")
 def tiny_demo(tmp_path_factory):
-    """The whole pipeline on demo at CI size (preset ci, ~20 s), run once per session:
+    """The whole pipeline on demo at CI size (preset ci, ~1 min with a warm Warp cache), run once per session:
     (workdir, results folder, the snakemake arguments used, the first run's process)."""
     workdir = tmp_path_factory.mktemp("tiny_demo")
     results = workdir / "results"

@@ -66,3 +66,63 @@ def test_cli_rejects_bad_lists():
         parse_args(["tracer", "--scenes", "room,cave"])
     _, cfg, _ = parse_args(["tracer", "--sizes", "1000", "--res", "8", "--threads", "1"])
     assert cfg.sizes == [1000] and cfg.resolutions == [8] and cfg.threads == [1]
+
+
+TRAIN_STEP_KEYS = {"device", "rays", "whole_view", "n_gaussians", "step_ms", "step_ms_min", "step_cpu_ms",
+                   "profiled_step_ms", "tracer_forward_ms", "tracer_backward_ms", "bvh_update_ms", "path_sampling_ms",
+                   "losses_ms", "autograd_ms", "optimizer_ms", "tracer_host_ms", "host_ms", "other_host_ms"}
+
+
+def test_train_step_quick_writes_complete_json(tmp_path, capsys):
+    """The real training step, split into sections that add up to the profiled step (never timing thresholds)."""
+    out = tmp_path / "train_step.json"
+    assert main(["train-step", "--quick", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["benchmark"] == "train-step"
+    rows = data["results"]
+    assert [(r["rays"], r["whole_view"]) for r in rows] == [(64, None), (256, None), (32 * 24, "32x24")]
+    for r in rows:
+        assert TRAIN_STEP_KEYS <= set(r), TRAIN_STEP_KEYS - set(r)
+        for key in TRAIN_STEP_KEYS - {"device", "whole_view", "other_host_ms"}:
+            assert math.isfinite(r[key]) and r[key] >= 0, key
+        assert r["tracer_forward_ms"] > 0 and r["tracer_backward_ms"] > 0 and r["optimizer_ms"] > 0
+        work = sum(r[f"{k}_ms"] for k in ("tracer_forward", "tracer_backward", "bvh_update", "path_sampling",
+                                           "losses", "autograd", "optimizer"))
+        assert work <= r["profiled_step_ms"] * 1.5  # medians per section: their sum is about the step's
+        assert r["n_gaussians"] == 2000  # no far field, no pruning: every step does the same work
+    assert data["overhead_floor"]["cpu"]["rays"] == 64
+    assert data["memory"]["cpu"]["peak_rss_mib"] > 0  # on CUDA also torch's and Warp's peaks
+    printed = capsys.readouterr().out
+    assert "trace fwd" in printed and "overhead floor (cpu, 64 rays)" in printed
+
+
+def test_section_timer_is_exclusive_of_nested_sections():
+    import time
+
+    from models.profiling import NO_TIMER, SectionTimer
+
+    timer = SectionTimer()
+    with timer.section("outer"):
+        time.sleep(0.02)
+        with timer.section("inner"):
+            time.sleep(0.03)
+    with timer.section("inner"):
+        time.sleep(0.01)
+    totals = timer.take()
+    assert 15 < totals["outer"] < 28, totals  # 20 ms of its own, not the inner 30
+    assert totals["inner"] >= 38, totals
+    assert timer.take() == {}
+    with NO_TIMER.section("anything"):  # the default costs nothing and records nothing
+        pass
+
+
+def test_buffernet_step_runs_the_training_step(tmp_path, capsys):
+    out = tmp_path / "bn.json"
+    assert main(["buffernet-step", "--init", "tiny", "--size", "16", "--steps", "1", "--device", "cpu",
+                 "--out", str(out)]) == 0
+    r = json.loads(out.read_text())["result"]
+    for key in ("step_ms", "vae_encode_ms", "unet_forward_backward_ms", "optimizer_ms", "loss", "peak_rss_mib"):
+        assert math.isfinite(r[key]) and r[key] > 0, key
+    assert r["unet_parameters"] > 0
+    assert "UNet fwd+bwd" in capsys.readouterr().out
+    assert main(["buffernet-step", "--init", "tiny", "--dtype", "bf16", "--device", "cpu"]) == 1  # CPU: fp32 only

@@ -212,3 +212,35 @@ def test_vae_roundtrip_chain_is_lossless_without_the_vae(rooms, monkeypatch):
     for b in ("diffuse", "specular", "roughness", "f0"):
         assert exact[b] >= 60 and random_vae[b] < exact[b] - 20, (b, exact[b], random_vae[b])
     assert exact["normal"] < 0.1 < random_vae["normal"] and exact["depth"] < 0.01 < random_vae["depth"]
+
+
+@pytest.mark.slow
+def test_sd2_init_trains_one_step_at_64px(rooms, tmp_path):
+    """``--init sd2``: Stable Diffusion 2's exact UNet / VAE / OpenCLIP-text configs with random weights (no
+    download), conv_in widened 4 -> 8, through the training's own loader and UNet step (AdamW) at 64 px on the CPU.
+    Slow: ~1.3B parameters, ~16 GB of RAM for weights + gradients + AdamW moments in fp32. (The step's callers,
+    checkpointing and saving, are the ones tiny/small use, tested above.)"""
+    from accelerate import Accelerator
+
+    from models.buffernet.codec import BUFFERS
+    from models.buffernet.training.train import _unet_step, load_initial
+
+    cfg = _cfg(rooms, tmp_path, init="sd2", size=64, batch_size=1, grad_accum=1, iterations=1, vae_steps=0)
+    pipe = load_initial(cfg.init, cfg.seed)
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    # SD2's counts (test_sd2_configs_have_sd2_sizes) with conv_in widened: + 4 x 320 x 3 x 3 weights
+    assert (count(pipe.unet), count(pipe.vae), count(pipe.text_encoder)) == (865_910_724 + 11_520, 83_653_863,
+                                                                             340_387_840)
+    assert pipe.unet.conv_in.in_channels == 8 and pipe.multiple == 64
+    acc = Accelerator(mixed_precision="no", cpu=True)
+    pipe.freeze()
+    pipe.unet.enable_gradient_checkpointing()
+    prompts = dict(zip(BUFFERS, pipe.encode_prompts(BUFFERS)))
+    assert next(iter(prompts.values())).shape == (77, 1024)  # OpenCLIP ViT-H's width, SD2's cross-attention
+    opt = torch.optim.AdamW(pipe.unet.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 1.0)
+    probe = pipe.unet.conv_in.weight.detach().clone()
+    dataset = BufferDataset(make_readers(cfg.data), cfg.size)
+    loss = _unet_step(pipe, pipe.unet, opt, sched, dataset, prompts, cfg, 0, acc)
+    assert np.isfinite(loss) and loss > 0
+    assert not torch.equal(probe, pipe.unet.conv_in.weight.detach())  # the step moved the weights

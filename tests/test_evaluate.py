@@ -1,6 +1,8 @@
-"""evaluate: per-layer metrics against ground truth, and region scores from world boxes."""
+"""evaluate: per-layer metrics against ground truth (emission included), HDR-safe (a capture x 1e4 scores as at x 1,
+clamped scores flagged as saturated), and region scores from world boxes."""
 
 import numpy as np
+import pytest
 
 from models.capture.exr import write_exr_channels
 from models.metrics import evaluate_renders, psnr, ssim
@@ -32,6 +34,91 @@ def test_regions_score_only_their_pixels(tmp_path):
     write_exr_channels(tmp_path / f"{test.name}.exr", channels)
     m = evaluate_renders(cap, tmp_path, regions={"quadrant": box})["views"][test.name]
     assert m["quadrant_pixels"] == inside.sum() > 0
-    assert abs(m["quadrant_psnr_diffuse"] - 20.0) < 0.05  # only the wrong pixels, error 0.1 (clamped at 1)
+    # only the wrong pixels, error 0.1, at the view's ground-truth peak (no clamp)
+    assert abs(m["quadrant_psnr_diffuse"] - (20.0 + 20 * np.log10(m["peak_diffuse"]))) < 1e-3
+    assert m["peak_diffuse"] == test.buffers["diffuse"].max()
     assert m["psnr_diffuse"] > m["quadrant_psnr_diffuse"] + 1  # the whole image dilutes the error
     assert m["quadrant_psnr_specular"] > 150
+
+
+def _write_render(folder, name, diffuse, specular, final):
+    channels = {c: final[..., i] for i, c in enumerate("RGB")}
+    for layer, arr in (("diffuse", diffuse), ("specular", specular)):
+        channels.update({f"{layer}.{c}": arr[..., i] for i, c in enumerate("RGB")})
+    folder.mkdir(parents=True, exist_ok=True)
+    write_exr_channels(folder / f"{name}.exr", channels)
+
+
+def _lamp_capture():
+    """plane_capture with specular, and an emission layer: a bright lamp (radiance 20) in a corner of each view."""
+    cap = plane_capture()
+    for v in cap.views:
+        v.buffers["specular"] = 0.2 * v.buffers["diffuse"]
+        emission = np.zeros_like(v.buffers["diffuse"])
+        emission[:6, :8] = 20.0
+        v.buffers["emission"] = emission
+    return cap
+
+
+def test_final_and_diffuse_include_emission(tmp_path):
+    """Ground truth final = diffuse + specular + emission, diffuse = diffuse + emission: a render that has the
+    lamp scores high, one that misses it (black lamp) loses on diffuse and final, and specular is unaffected."""
+    cap = _lamp_capture()
+    test = cap.split("test")[0]
+    d, s, e = (test.buffers[k] for k in ("diffuse", "specular", "emission"))
+    _write_render(tmp_path / "lit", test.name, d + e, s, d + e + s)
+    _write_render(tmp_path / "dark", test.name, d, s, d + s)
+    lit = evaluate_renders(cap, tmp_path / "lit")
+    dark = evaluate_renders(cap, tmp_path / "dark")
+    assert lit["ground_truth"] == {"diffuse": "diffuse + emission", "specular": "specular",
+                                   "final": "diffuse + specular + emission"}
+    assert "3DGS" in lit["definitions"]["ssim"]
+    for layer in ("diffuse", "final"):
+        assert lit["mean"][f"psnr_{layer}"] > 100 and dark["mean"][f"psnr_{layer}"] < 30
+        assert dark["mean"][f"psnr_{layer}_tonemapped"] < 30
+        assert lit["mean"][f"peak_{layer}"] >= 20
+    assert lit["mean"]["psnr_specular"] == dark["mean"]["psnr_specular"]
+    # the lamp exceeds 1 on 4% of the pixels: the clamped scores are flagged for diffuse and final
+    flagged = {(f["view"], f["layer"]) for f in dark["saturated"] if any("exceed 1" in r for r in f["reasons"])}
+    assert flagged == {(test.name, "diffuse"), (test.name, "final")}
+
+
+def test_no_emission_and_zero_emission_score_alike(tmp_path):
+    """A capture without an emission layer scores exactly as with an all-zero one (and as diffuse + specular)."""
+    cap = _lamp_capture()
+    test = cap.split("test")[0]
+    d, s = test.buffers["diffuse"], test.buffers["specular"]
+    rng = np.random.default_rng(0)
+    noisy = d + rng.normal(0, 0.02, d.shape).astype(np.float32)
+    _write_render(tmp_path, test.name, noisy, s, noisy + s)
+    for v in cap.views:
+        v.buffers["emission"] = np.zeros_like(v.buffers["diffuse"])
+    zero = evaluate_renders(cap, tmp_path)
+    for v in cap.views:
+        del v.buffers["emission"]
+    absent = evaluate_renders(cap, tmp_path)
+    assert zero["mean"] == absent["mean"] and zero["views"] == absent["views"]
+    assert zero["saturated"] == absent["saturated"] and absent["ground_truth"]["final"] == "diffuse + specular"
+
+
+def test_capture_x1e4_scores_as_at_x1_and_flags_the_clamped_scores(tmp_path):
+    scores = {}
+    for scale in (1.0, 1e4):
+        cap = plane_capture()
+        rng = np.random.default_rng(1)
+        for v in cap.views:
+            v.buffers["diffuse"] = scale * (0.5 * v.buffers["diffuse"] + 0.1)
+            v.buffers["specular"] = 0.2 * v.buffers["diffuse"]
+        test = cap.split("test")[0]
+        d, s = test.buffers["diffuse"], test.buffers["specular"]
+        noisy = d * (1 + rng.normal(0, 0.02, d.shape)).astype(np.float32)
+        _write_render(tmp_path / str(scale), test.name, noisy, s, noisy + s)
+        scores[scale] = evaluate_renders(cap, tmp_path / str(scale))
+    one, big = scores[1.0], scores[1e4]
+    for key in ("psnr_diffuse", "psnr_final", "psnr_final_tonemapped", "ssim_final", "ssim_final_tonemapped"):
+        assert big["mean"][key] == pytest.approx(one["mean"][key], abs=1e-3), key
+    assert 20 < big["mean"]["psnr_final"] < 60 and big["mean"]["psnr_final_clamped"] > 100
+    assert big["mean"]["peak_final"] == pytest.approx(1e4 * one["mean"]["peak_final"], rel=1e-6)
+    flagged = {f["layer"] for f in big["saturated"]}
+    assert flagged == {"diffuse", "specular", "final"}
+    assert not any(f["layer"] in ("diffuse", "final") for f in one["saturated"])

@@ -48,7 +48,8 @@ def test_contract_fails_on_a_stage_importing_another(tmp_path):
         shutil.copytree(ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     cli = tmp_path / "stages" / "render" / "__main__.py"
-    cli.write_text(cli.read_text().replace("import torch\n", "import torch\n\nimport stages.evaluate.__main__\n", 1))
+    cli.write_text(cli.read_text().replace("from __future__ import annotations\n",
+                                           "from __future__ import annotations\n\nimport stages.evaluate.__main__\n", 1))
     proc = _lint(tmp_path, pythonpath=tmp_path)
     assert proc.returncode != 0
     assert "stages are leaves: no stage imports another stage BROKEN" in proc.stdout

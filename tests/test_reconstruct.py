@@ -151,3 +151,78 @@ def test_pruning_keeps_what_the_views_see_only_in_mirrors(book):
     seen_direct, seen_both = int((direct[far] >= threshold).sum()), int((both[far] >= threshold).sum())
     assert seen_both > 3 * seen_direct + 100  # the mirror sees far more of the far field than the holes of the walls
     assert torch.all(both[~far] >= direct[~far] - 1e-6)
+
+
+def _room(n_views=2, width=32, height=24):
+    """A capture built in memory (no Mitsuba): a random room of 2000 Gaussians traced by the tracer itself."""
+    from stages.benchmark.room_capture import room_capture
+
+    return room_capture(tracer(), 2000, n_views, width, height, seed=3)
+
+
+def _room_config(**kw) -> ReconstructConfig:
+    return ReconstructConfig(**{**dict(iterations=100, warmup=0, rays_per_step=64, far_field="off", prune_every=0,
+                                       checkpoint_every=100), **kw})
+
+
+def test_ray_batches_are_the_rayset_rows():
+    """RayBatcher (one packed table on the trainer's device, one gather per batch) gives RaySet.subset's rows and
+    view_rays' views, bit for bit."""
+    from models.reconstruction.batches import RayBatcher
+
+    capture, _ = _room()
+    rays = build_rayset(capture, "train")
+    batches = RayBatcher(rays, torch.device("cpu"))
+    index = torch.randint(len(rays), (100,), generator=torch.Generator().manual_seed(0))
+    for a, b in ((rays.subset(index), batches.sample(index)), (rays.view_rays(1), batches.view(1))):
+        for name in ("origins", "dirs", "mask", "view_of_ray"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert a.targets.keys() == b.targets.keys()
+        for name in a.targets:
+            assert torch.equal(a.targets[name], b.targets[name]), name
+
+
+def test_non_finite_gradients_skip_the_update_and_stop_training(tmp_path):
+    """A step with a non-finite gradient leaves parameters and Adam's state as they were (flagged on the device);
+    the flags are read back every FINITE_CHECK_EVERY steps and before every checkpoint (not per step)."""
+    from models.reconstruction.trainer import FINITE_CHECK_EVERY
+
+    capture, init = _room()
+    trainer = Trainer(capture, init, _room_config(), tracer())
+    metrics = trainer.train_step()
+    assert np.isfinite(metrics["loss"]) and np.isfinite(metrics["psnr_specular"])
+    trainer.save_checkpoint(tmp_path / "ok.pt")
+    before = {k: v.detach().clone() for k, v in trainer.params.items()}
+    trainer.losses = lambda batch, reflections: _nan_loss(trainer, batch, reflections)
+    trainer.train_step()  # every gradient NaN: the update is skipped
+    for name, p in trainer.params.items():
+        assert torch.equal(p, before[name]), name
+    with pytest.raises(FloatingPointError, match=r"step 2: non-finite gradient in means \(1 steps\).* since step 1"):
+        trainer.save_checkpoint(tmp_path / "bad.pt")
+    assert not (tmp_path / "bad.pt").exists()
+    with torch.no_grad():
+        trainer.params["f0"][0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="non-finite values in f0"):
+        for _ in range(FINITE_CHECK_EVERY):
+            trainer.train_step()
+    assert trainer.step <= FINITE_CHECK_EVERY
+
+
+def _nan_loss(trainer, batch, reflections):
+    total, metrics = Trainer.losses(trainer, batch, reflections)
+    return total * float("nan"), metrics
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the trainer's CUDA path runs when one is present")
+def test_cuda_trainer_keeps_its_state_on_the_gpu_and_matches_the_cpu():
+    capture, init = _room()
+    cfg = _room_config(rays_per_step=0)  # whole views: RayBatcher.view slices
+    cpu = Trainer(capture, init, cfg, tracer())
+    gpu = Trainer(capture, init, cfg, Tracer(TracerConfig(), device="cuda"))
+    assert all(p.is_cuda for p in gpu.params.values()) and gpu.batches.table.is_cuda
+    for _ in range(3):
+        a, b = cpu.train_step(), gpu.train_step()
+        assert abs(a["loss"] - b["loss"]) < 1e-3 * max(abs(a["loss"]), 1.0), (a, b)
+    for name, p in cpu.params.items():
+        torch.testing.assert_close(gpu.params[name].cpu(), p, atol=1e-3, rtol=1e-3)

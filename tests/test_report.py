@@ -94,3 +94,33 @@ def test_error_map_scale():
     assert m.dtype == np.uint8 and m.shape == (2, 2, 3)
     assert m[1, 1].sum() < 20  # exact: black end of magma
     assert m[0, 0, 0] > 240 and m[0, 0, 1] > 200  # vmax: the bright (yellow) end
+
+
+def test_batch_report_states_command_and_each_scenes_presets(tmp_path):
+    """What Snakemake passes (rule batch_report): the command line and each scene's presets, shown per scene."""
+    folders = []
+    for name in ("a", "b", "c"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.json").write_text(json.dumps({"mean": {"psnr_final": 20.0}}))
+        folders.append(str(tmp_path / name))
+    out = tmp_path / "batch.html"
+    proc = subprocess.run([sys.executable, "-m", "stages.report", "batch", *folders, "--out", str(out),
+                           "--command", "snakemake --cores 2 --config batch=x preset=ci",
+                           "--presets-json", json.dumps({"a": ["fast", "ci"], "b": []})],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    html = out.read_text()
+    assert "Run with <code>snakemake --cores 2 --config batch=x preset=ci</code>" in html
+    rows = {name: re.search(rf">{name}</td>.*?</tr>", html).group(0) for name in ("a", "b", "c")}
+    assert rows["a"].endswith('<td class="l">fast, ci</td></tr>')
+    assert rows["b"].endswith('<td class="l">none</td></tr>')
+    assert rows["c"].endswith('<td class="l">–</td></tr>')  # not given: unknown, not "none"
+
+
+def test_scene_report_header_without_command_gives_the_command_for_its_presets():
+    from stages.report.scene import run_line
+
+    assert run_line("demo", ["fast", "ci"], None) == ("Made with the presets fast, ci: <code>snakemake --cores 2 "
+                                                      "--config scene=demo preset=fast,ci</code>.")
+    assert run_line("demo", [], "snakemake -c2 --config scene=demo") == \
+        "Run with <code>snakemake -c2 --config scene=demo</code> (presets: none)."

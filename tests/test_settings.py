@@ -65,9 +65,8 @@ def test_defaults_round_trip_through_the_schema(cls):
 
 
 def test_every_scene_and_preset_builds_its_sections():
-    for scene in known("scenes"):
-        synthetic = load_config(scene)["kind"] == "synthetic"  # the presets size synthetic scenes (synth:)
-        for presets in ([], *([[p] for p in known("presets")] if synthetic else [])):
+    for scene in known("scenes"):  # every preset on every kind of scene (ci on photos: its sizes, no synth:)
+        for presets in ([], *[[p] for p in known("presets")]):
             config = load_config(scene, presets=presets)
             for path, cls in SECTIONS.items():
                 section = _section(config, path)
@@ -151,3 +150,22 @@ def test_config_json_by_hand_is_validated_like_the_workflow(tmp_path, capsys):
                "--out", str(tmp_path / "model")])
     assert rc != 0 and "reconstruct.iterations must be >= 1, got -5" in capsys.readouterr().err
     assert not (tmp_path / "model").exists()
+
+
+def test_preset_applies_without_a_scene():
+    """By hand, `--preset fast` without `--scene` gives the fast schedule (it used to be ignored silently), and is
+    refused beside --config-json (which is the whole section)."""
+    import argparse
+
+    from stages.cli import add_config_args, load_section
+
+    parser = argparse.ArgumentParser()
+    add_config_args(parser, "reconstruct")
+    fast = read_yaml(CONFIGS / "presets" / "fast.yaml")["reconstruct"]
+    section = load_section(parser.parse_args(["--preset", "fast"]), "reconstruct")
+    assert {k: section[k] for k in fast} == fast  # the defaults, the preset over them
+    assert load_section(parser.parse_args([]), "reconstruct") == {}
+    with pytest.raises(ValueError, match="unknown preset 'nope'; known presets: ci, fast"):
+        load_section(parser.parse_args(["--preset", "nope"]), "reconstruct")
+    with pytest.raises(ValueError, match="--preset fast cannot be combined with --config-json"):
+        load_section(parser.parse_args(["--preset", "fast", "--config-json", "{}"]), "reconstruct")

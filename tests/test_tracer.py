@@ -13,7 +13,7 @@ import pytest
 import torch
 import warp as wp
 
-from models.gaussians import Gaussians, random_gaussians
+from models.gaussians import Gaussians, random_gaussians, room_gaussians
 from models.tracer import LAYERS, Tracer, TracerConfig, reference_trace
 
 OUTPUTS = ["diffuse", "depth", "normal", "roughness", "f0", "transmittance"]
@@ -405,6 +405,10 @@ def test_thread_stripes_cover_every_ray_once():
         assert len(stripes) <= threads
         covered = sorted(i for s in stripes for a, b in s for i in range(a, b))
         assert covered == list(range(n_rays))
+    # a small batch is one launch on one thread (launch overhead, and one gradient buffer set to sum, not two)
+    assert thread_stripes(64, 2) == [[(0, 64)]]
+    chunks = [c for s in thread_stripes(1000, 2) for c in s]
+    assert len(chunks) == 4 and min(b - a for a, b in chunks) >= 250
 
 
 def test_cuda_kernels_compile_with_nvrtc():
@@ -480,3 +484,12 @@ def test_ordered_traversal_matches_reference_and_stops_early(device, variant):
 def test_unknown_traversal_is_refused_by_name():
     with pytest.raises(ValueError, match="traversal must be one of interval, single, kbuffer, ordered, got 'bvh'"):
         TracerConfig(traversal="bvh")
+
+
+def test_non_finite_geometry_raises_instead_of_tracing():
+    """NaN in a mean: the bounds (read back at every update) say so before a traversal that would not end."""
+    g = room_gaussians(500, torch.Generator().manual_seed(0))
+    g.means[5] = float("nan")
+    origins, dirs = torch.zeros(4, 3), torch.nn.functional.normalize(torch.randn(4, 3), dim=1)
+    with pytest.raises(FloatingPointError, match="non-finite Gaussian bounds"):
+        Tracer(TracerConfig(num_threads=1)).trace(origins, dirs, g)

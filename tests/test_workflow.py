@@ -1,18 +1,21 @@
 """Snakemake workflow: dry run, a real tiny run, caching, config errors, lint."""
 
+import re
 import subprocess
 import sys
 
 import pytest
 
 from models.capture import read_capture
-from tests.conftest import ROOT, snakemake
+from tests.conftest import PROFILE_NOTE, ROOT, snakemake
+
 
 
 def test_unknown_scene_is_one_line_listing_known(tmp_path):
     proc = snakemake(tmp_path, "-n", "--config", "scene=nope")
     assert proc.returncode != 0
-    lines = [l for l in (proc.stdout + proc.stderr).splitlines() if l.strip()]
+    # besides Snakemake's note that it reads the workflow profile (profiles/default), one line
+    lines = [l for l in (proc.stdout + proc.stderr).splitlines() if l.strip() and not PROFILE_NOTE.match(l)]
     assert lines == [lines[0]] and lines[0].startswith("error: unknown scene 'nope'; known scenes: ")
     assert "demo" in lines[0] and "mirror_book" in lines[0] and "chromeballs" in lines[0]
 
@@ -87,3 +90,54 @@ def test_tiny_run_then_cached(tiny_demo):
     (tmp_path / "more.yaml").write_text("synth: {spp: 4}\n")
     third = snakemake(tmp_path, "-n", "--configfile", str(tmp_path / "more.yaml"), *args)
     assert third.returncode == 0 and "synth" in third.stdout
+
+
+def test_console_shows_stage_progress_and_the_report(tiny_demo):
+    """Besides Snakemake's job blocks, the console has one line when each stage starts and ends (elapsed time;
+    progress lines between them when a stage runs long), and at the end where the report is."""
+    _, results, _, proc = tiny_demo
+    for stage in ("synth", "init", "reconstruct", "render", "evaluate", "report"):
+        assert f"[{stage} scene=demo] started (log: {results}/demo/logs/{stage}.log)" in proc.stderr, stage
+        assert re.search(rf"\[{stage} scene=demo\] done in [0-9.]+ s", proc.stderr), stage
+    assert f"open {results}/demo/report.html" in proc.stderr.splitlines()
+
+
+def test_report_states_command_and_presets(tiny_demo):
+    _, results, args, _ = tiny_demo
+    html = (results / "demo" / "report.html").read_text()
+    assert f"--config {' '.join(args[1:])}</code> (presets: fast, ci)" in html  # the demo scene names fast itself
+
+
+def test_snakemake_report_has_scene_report_metrics_and_pictures(tiny_demo):
+    """`snakemake --report` (the catalog's report) of the tiny run: the scene's own HTML report, its metrics.json
+    and the final / diffuse / specular PNG of each test view."""
+    import zipfile
+
+    workdir, _, args, _ = tiny_demo
+    proc = snakemake(workdir, *args, "--report", str(workdir / "report.zip"))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = {n.rsplit("/", 1)[-1] for n in zipfile.ZipFile(workdir / "report.zip").namelist()}
+    assert {"report.html", "metrics.json", "test_000_final.png", "test_001_specular.png"} <= names, names
+
+
+def test_default_profile_gives_threads_and_memory(tmp_path):
+    """profiles/default (the workflow profile) sets each rule's threads and mem_mb; the stage gets {threads}."""
+    proc = snakemake(tmp_path, "-n", "-p", "--config", "scene=demo")
+    assert proc.returncode == 0, proc.stderr
+    block = proc.stdout[proc.stdout.index("rule reconstruct:"):].split("\n\n")[0]
+    assert "threads: 2" in block and "mem_mb=16000" in block and "gpu=0" in block, block
+    assert "-m stages.reconstruct" in block and "--threads 2" in block, block
+
+
+def test_slurm_profile_dry_run(tmp_path):
+    """The cluster profile plans the demo without a cluster (a dry run calls no sbatch)."""
+    pytest.importorskip("snakemake_executor_plugin_slurm")
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"),
+                           "--directory", str(tmp_path), "--profile", str(ROOT / "profiles" / "slurm"), "-n",
+                           "--config", "scene=demo", f"results={tmp_path / 'results'}"],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "profiles/slurm" in proc.stderr and "workflow specific profile" in proc.stderr
+    for rule in ("synth", "init", "reconstruct", "render", "evaluate", "report"):
+        assert f"rule {rule}:" in proc.stdout, rule
+    assert "runtime=720" in proc.stdout and "mem_mb=16000" in proc.stdout

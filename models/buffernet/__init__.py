@@ -9,12 +9,30 @@ one text prompt per buffer; its v prediction is turned into x0 and decoded by th
 - ``build``: random tiny / small models, the real SD2 configs, ``widen_conv_in``, ``from_stable_diffusion``.
 """
 
-from .build import build_pipeline, from_stable_diffusion, sd2_configs, widen_conv_in
-from .codec import BUFFERS, PROMPTS, decode_output, encode_rgb, encode_target, input_exposure
-from .pipeline import BufferNetPipeline
-from .tokenizer import clip_tokenizer
+from __future__ import annotations
 
-__all__ = [
-    "BUFFERS", "PROMPTS", "BufferNetPipeline", "build_pipeline", "clip_tokenizer", "decode_output", "encode_rgb",
-    "encode_target", "from_stable_diffusion", "input_exposure", "sd2_configs", "widen_conv_in",
-]
+import importlib
+from typing import TYPE_CHECKING
+
+# name -> submodule; imported on first use (PEP 562), so that importing models.buffernet.training.config or
+# models.buffernet.fill (the settings, what a stage's --help and the workflow need) does not load torch / diffusers
+_EXPORTS = {
+    "build_pipeline": "build", "from_stable_diffusion": "build", "sd2_configs": "build", "widen_conv_in": "build",
+    "BUFFERS": "codec", "PROMPTS": "codec", "decode_output": "codec", "encode_rgb": "codec", "encode_target": "codec",
+    "input_exposure": "codec", "BufferNetPipeline": "pipeline", "clip_tokenizer": "tokenizer",
+}
+__all__ = sorted(_EXPORTS)
+
+if TYPE_CHECKING:
+    from .build import build_pipeline, from_stable_diffusion, sd2_configs, widen_conv_in
+    from .codec import BUFFERS, PROMPTS, decode_output, encode_rgb, encode_target, input_exposure
+    from .pipeline import BufferNetPipeline
+    from .tokenizer import clip_tokenizer
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    globals()[name] = value
+    return value

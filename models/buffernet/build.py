@@ -1,10 +1,11 @@
 """Building a ``BufferNetPipeline``: from the real stable-diffusion-2 weights on disk, or random weights of the
-same architecture family at test / CPU-training size.
+same architecture family at test / CPU-training size, or at SD2's exact size.
 
 ``from_stable_diffusion(local_dir)`` loads a diffusers-layout SD2 folder (``unet/``, ``vae/``,
 ``text_encoder/``, ``tokenizer/``, ``scheduler/``) without the hub and widens conv_in 4 -> 8
-(``widen_conv_in``). ``build_pipeline("tiny" | "small")`` gives random weights: "tiny" for unit tests,
-"small" for training on CPU at 64..128 px. ``sd2_configs()`` documents the real shapes.
+(``widen_conv_in``). ``build_pipeline("tiny" | "small" | "sd2")`` gives random weights: "tiny" for unit tests,
+"small" for training on CPU at 64..128 px, "sd2" SD2's exact configs (``sd2_configs()``: 866M-parameter UNet, 84M
+VAE, 340M OpenCLIP ViT-H text tower; ~5 GB fp32) for timing and memory runs at the paper's scale without a download.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from .pipeline import IN_CHANNELS, BufferNetPipeline
 from .tokenizer import MAX_LENGTH, clip_tokenizer
 
 VOCAB_SIZE = 49408  # CLIP's BPE vocabulary (tokenizer.py)
+RANDOM_INITS = ("tiny", "small", "sd2")  # build_pipeline sizes (random weights)
 
 # stabilityai/stable-diffusion-2 (768-v): scaled-linear betas, v prediction, no zero-terminal-SNR rescaling.
 SCHEDULER_CONFIG = dict(num_train_timesteps=1000, beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
@@ -68,7 +70,7 @@ def _random_configs(size: str) -> dict[str, dict]:
         vae = dict(block_out_channels=(32, 64), layers_per_block=1, norm_num_groups=16, sample_size=128)
         text = dict(hidden_size=text_width, intermediate_size=256, num_hidden_layers=2, num_attention_heads=4)
     else:
-        raise ValueError(f"unknown model size {size!r}; valid sizes: tiny, small")
+        raise ValueError(f"unknown model size {size!r}; valid sizes: {', '.join(RANDOM_INITS)}")
     unet.update(in_channels=4, out_channels=4, cross_attention_dim=text_width, use_linear_projection=True)
     n = len(vae["block_out_channels"])
     vae.update(in_channels=3, out_channels=3, latent_channels=4, down_block_types=("DownEncoderBlock2D",) * n,
@@ -98,12 +100,13 @@ def widen_conv_in(unet: UNet2DConditionModel) -> UNet2DConditionModel:
 
 
 def build_pipeline(size: str = "tiny", seed: int = 0, tokenizer: CLIPTokenizer | None = None) -> BufferNetPipeline:
-    """Random weights (``torch.manual_seed(seed)``) of SD2's architecture at ``size`` "tiny" or "small", conv_in
-    widened to 8. The tokenizer is CLIP's real one (``clip_tokenizer()``) unless given.
+    """Random weights (``torch.manual_seed(seed)``) of SD2's architecture at ``size`` "tiny" or "small", or of
+    SD2 itself ("sd2": ``sd2_configs()``), conv_in widened to 8. The tokenizer is CLIP's real one
+    (``clip_tokenizer()``) unless given.
 
     Note: the VAE is random too, so a "small" model's decoded outputs mean nothing until its VAE has been
     trained as an autoencoder; the real model uses SD2's VAE (``from_stable_diffusion``)."""
-    cfg = _random_configs(size)
+    cfg = sd2_configs() if size == "sd2" else _random_configs(size)
     torch.manual_seed(seed)
     unet = widen_conv_in(UNet2DConditionModel(**cfg["unet"]))
     vae = AutoencoderKL(**cfg["vae"])

@@ -48,6 +48,16 @@ def channels(names) -> dict[str, int]:
     return {name: LAYERS[name] for name in names}
 
 
+def diffuse_radiance(buffers: dict):
+    """The view-independent radiance a Gaussian scene carries for a view's pixels (``[H, W, 3]`` or ``[R, 3]``):
+    the ``diffuse`` layer plus ``emission`` (light sources seen directly) where the view has that layer, else
+    ``diffuse`` itself (the same object). Reconstruction fits the Gaussians' diffuse radiance to it, scoring
+    compares their rendered diffuse layer with it, and the final image is it + ``specular`` (= ``rgb``)."""
+    if "emission" not in buffers:
+        return buffers["diffuse"]
+    return buffers["diffuse"] + buffers["emission"]
+
+
 def layer_prefix(channel: str) -> str:
     """The layer a channel name claims to belong to ('' for the bare R,G,B of ``rgb``)."""
     return channel.rsplit(".", 1)[0] if "." in channel else ""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -80,6 +80,18 @@ class Capture:
         if name not in SPLITS:
             raise ValueError(f"unknown split {name!r} (expected one of {', '.join(SPLITS)})")
         return [v for v in self.views if v.split == name]
+
+    def require_complete(self, split: str, layers: Iterable[str]) -> None:
+        """Raise CaptureError naming the ``split`` views that lack one of ``layers`` while other views of the split
+        have it: a layer in some views only is a broken capture, not a capture without that layer."""
+        views = self.split(split)
+        for layer in layers:
+            lacking = [v.name for v in views if layer not in v.buffers]
+            if lacking and len(lacking) < len(views):
+                shown = ", ".join(lacking[:8]) + (f", ... ({len(lacking)} in all)" if len(lacking) > 8 else "")
+                raise CaptureError(f"the {layer!r} buffer is missing from {len(lacking)} of {len(views)} {split} "
+                                   f"view(s) ({shown}) but present in the others: give it to every {split} view "
+                                   "or to none")
 
     def camera_extent(self) -> float:
         """Radius of the sphere around the camera centres' mean that bounds them (3DGS scene extent), x1.1."""

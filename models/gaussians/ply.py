@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 
 from models.gaussians.scene import Gaussians
 
@@ -68,7 +68,13 @@ def read_ply(path: str | os.PathLike, device="cpu", dtype=torch.float32) -> Gaus
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"PLY file not found: {path}")
-    vertex = PlyData.read(str(path))["vertex"]
+    try:
+        ply = PlyData.read(str(path))
+    except (PlyParseError, ValueError, EOFError) as e:  # plyfile's parse errors, numpy's on a short buffer
+        raise ValueError(f"{path}: truncated or corrupt PLY ({e})") from None
+    if "vertex" not in ply:
+        raise ValueError(f"{path}: PLY has no 'vertex' element (elements: {[el.name for el in ply.elements]})")
+    vertex = ply["vertex"]
     present = set(vertex.data.dtype.names)
     n = len(vertex.data)
     defaults = {"normals": 0.0, "roughness": 0.0, "f0": 0.04}

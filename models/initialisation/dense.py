@@ -19,6 +19,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from models.capture import Capture, CaptureError, View
+from models.capture.layers import diffuse_radiance
 from models.gaussians import Gaussians
 from models.settings import from_dict, setting
 
@@ -60,7 +61,7 @@ def _sample_view(view: View, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     ys = np.minimum(((np.arange(int(np.floor(cam.height / step))) + 0.5) * step).astype(int), cam.height - 1)
     dirs = cam.ray_directions()[np.ix_(ys, xs)]  # [h, w, 3]
     depth = view.buffers["depth"][np.ix_(ys, xs)][..., 0].astype(np.float64)
-    colour = view.buffers["diffuse"][np.ix_(ys, xs)].astype(np.float64)
+    colour = diffuse_radiance(view.buffers)[np.ix_(ys, xs)].astype(np.float64)  # + emission: lights start lit
     valid = np.isfinite(depth) & (depth > 0)
     if "mask" in view.buffers:
         valid &= view.buffers["mask"][np.ix_(ys, xs)][..., 0] > 0.5

@@ -49,6 +49,11 @@ def initialise(capture: Capture, capture_dir: str | Path, config: InitConfig = I
     """Dense init from depth when the capture has it (or ``source: depth``), else from the SfM points of
     ``capture_dir``. The summary's ``decision`` says which and why."""
     capture_dir = Path(capture_dir)
+    if not capture.split("train"):
+        raise CaptureError(f"{capture_dir}: the capture has no training views (all {len(capture.views)} are "
+                           "split: test); mark the views to train on \"split\": \"train\" in its transforms.json")
+    if config.source != "sfm":  # depth in some training views only: a broken capture, not one without depth
+        capture.require_complete("train", ("depth", "diffuse"))
     depth = has_depth(capture)
     if config.source == "depth" or (config.source == "auto" and depth):
         gaussians, summary = dense_init(capture, config)
@@ -58,7 +63,8 @@ def initialise(capture: Capture, capture_dir: str | Path, config: InitConfig = I
     if found is None:
         missing = "has no depth buffer and " if not depth else ""
         raise CaptureError(f"{capture_dir}: {missing}no SfM points to initialise from "
-                           f"(expected {capture_dir / 'points3D.ply'} or a COLMAP model in {capture_dir / 'sparse'})")
+                           f"(expected {capture_dir / 'points3D.ply'}, a COLMAP model in {capture_dir / 'sparse'}, "
+                           "a ply_file_path in transforms.json or nerfstudio's colmap/sparse/0)")
     points, colours, source = found
     gaussians, summary = sfm_init(points, colours, config, where=str(source))
     why = "config source: sfm" if config.source == "sfm" else "the capture has no depth buffer"

@@ -11,8 +11,9 @@ from scipy.ndimage import uniform_filter
 from models.capture import Capture, read_view_buffers
 from models.capture.layers import SCORED
 
+from .hdr import peak
 from .image import psnr
-from .scoring import evaluate_renders
+from .scoring import evaluate_renders, ground_truth
 
 CHANGED_THRESHOLD = 0.02  # a pixel is "changed by the edit" where ground truth final moved more than this
 # ... after a 3x3 box filter of the signed difference: the two ground truths' Monte Carlo noise decorrelates
@@ -21,21 +22,22 @@ CHANGED_FILTER = 3
 
 
 def _final(buffers: dict) -> np.ndarray:
-    return np.clip(buffers["diffuse"] + buffers["specular"], 0, 1)
+    """Ground-truth final (with emission) clamped to [0, 1]: only to find the changed pixels, not to score."""
+    return np.clip(ground_truth(buffers)["final"], 0, 1)
 
 
 def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, baseline_renders: Path) -> dict:
     """PSNR per layer on the pixels the edit changed (box-filtered ground-truth final moved > CHANGED_THRESHOLD):
     the edited render vs the edited ground truth, and, as the do-nothing reference, the unedited render vs
-    the same edited ground truth."""
+    the same edited ground truth; linear, no clamp, at the peak of the edited ground truth's whole view (as
+    ``psnr_<layer>`` of ``evaluate_renders``)."""
     before = {v.name: v for v in capture.split("test")}
     out: dict[str, list] = {}
     for view in truth.split("test"):
         if view.name not in before:
             raise ValueError(f"ground-truth view {view.name!r} has no test view of that name in the capture")
         h, w = view.camera.height, view.camera.width
-        gt = {"diffuse": view.buffers["diffuse"], "specular": view.buffers["specular"]}
-        gt["final"] = gt["diffuse"] + gt["specular"]
+        gt = ground_truth(view.buffers)
         diff = _final(view.buffers) - _final(before[view.name].buffers)
         diff = uniform_filter(diff, (CHANGED_FILTER, CHANGED_FILTER, 1))
         mask = np.abs(diff).max(axis=-1) > CHANGED_THRESHOLD
@@ -47,7 +49,7 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
             pred = {"diffuse": pred["diffuse"], "specular": pred["specular"], "final": pred["rgb"]}
             for layer in SCORED:
                 out.setdefault(f"{key}_psnr_{layer}", []).append(
-                    psnr(np.clip(pred[layer], 0, 1), np.clip(gt[layer], 0, 1), mask))
+                    psnr(pred[layer], gt[layer], mask, peak=peak(gt[layer])))
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
@@ -56,13 +58,16 @@ def evaluate_edit(capture: Capture, truth: Capture, renders: Path, baseline_rend
     unedited render vs the unedited ground truth (the scene's own metrics), and both on the changed pixels."""
     edited = evaluate_renders(truth, renders)
     unedited = evaluate_renders(capture, baseline_renders)
-    keys = [f"psnr_{layer}" for layer in SCORED] + [f"ssim_{layer}" for layer in SCORED] + \
-        [f"psnr_{layer}_tonemapped" for layer in SCORED]
+    keys = [f"{kind}_{layer}{suffix}" for kind, suffix in (("psnr", ""), ("ssim", ""), ("psnr", "_tonemapped"),
+                                                          ("ssim", "_tonemapped"), ("psnr", "_clamped"),
+                                                          ("psnr", "_srgb")) for layer in SCORED]
     return {
         "edited_vs_truth": {k: edited["mean"][k] for k in keys},
         "unedited_vs_truth": {k: unedited["mean"][k] for k in keys},
         "changed_region": changed_region_metrics(capture, truth, renders, baseline_renders),
         "views": {"edited": edited["views"], "unedited": unedited["views"]},
+        "saturated": {"edited": edited["saturated"], "unedited": unedited["saturated"]},
+        "definitions": edited["definitions"],
         "changed_threshold": CHANGED_THRESHOLD,
         "changed_filter": CHANGED_FILTER,
     }

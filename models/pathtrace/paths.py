@@ -108,25 +108,28 @@ def trace_paths(
         rough = rough_raw.reshape(-1).clamp(config.min_roughness, 1.0)
         f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)
         x = o + d * (seg.depth.detach().reshape(-1, 1) / opacity)
-        u = torch.rand((len(index), 2), generator=generator, dtype=o.dtype, device=o.device)
+        # drawn where the generator lives (a CPU generator gives the same paths on every device)
+        u = torch.rand((len(index), 2), generator=generator, dtype=o.dtype,
+                       device=o.device if generator is None else generator.device).to(o.device)
         wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler)
+        # (no branch on "any mirror": selecting costs less than a device read-back)
         mirror = rough_raw.reshape(-1) <= config.min_roughness
-        if mirror.any():
-            cos_o = (n * wo).sum(-1).clamp(0.0, 1.0)
-            wi = torch.where(mirror[:, None], reflect(d, n), wi)
-            weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o), weight)
-            valid = torch.where(mirror, cos_o > 0, valid)
+        cos_o = (n * wo).sum(-1).clamp(0.0, 1.0)
+        wi = torch.where(mirror[:, None], reflect(d, n), wi)
+        weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o), weight)
+        valid = torch.where(mirror, cos_o > 0, valid)
         keep = keep & valid & (weight.amax(-1) > 0)
+        live = keep.nonzero().reshape(-1)  # the one read-back of a bounce; rows are gathered by index after it
         alive = torch.zeros(rays, dtype=torch.bool, device=origins.device)
-        alive[index[keep]] = True
+        alive[index[live]] = True
         out.alive.append(alive)
-        if not keep.any():
+        if live.numel() == 0:
             break
-        index = index[keep]
-        throughput = throughput[keep] * weight[keep].detach()
-        d = wi[keep]
-        o = x[keep] + config.origin_offset * d
-        grad_scale = (1.0 - rough[keep]).clamp_min(0.0) ** config.grad_roughness_power
+        index = index[live]
+        throughput = throughput[live] * weight[live].detach()
+        d = wi[live]
+        o = x[live] + config.origin_offset * d
+        grad_scale = (1.0 - rough[live]).clamp_min(0.0) ** config.grad_roughness_power
         seg = trace_fn(o, d, gaussians)
         contrib = throughput * _scale_grad(seg.diffuse, grad_scale[:, None])
         bounce = torch.zeros_like(specular).index_put((index,), contrib)

@@ -21,7 +21,8 @@ class LossWeights:
 
     diffuse: float = setting(5.0, "L1 on the first segment's diffuse layer", minimum=0)
     specular: float = setting(3.0, "L1 on the path-traced specular estimate (after warm-up)", minimum=0)
-    depth: float = setting(2.5, "L1 on expected depth (distance along the ray)", minimum=0)
+    depth: float = setting(2.5, "L1 on expected depth (distance along the ray), in units of the scene's size / 6 "
+                           "(metres in a 4 x 2.5 x 4 m room, whose diagonal is ~6 m; scale-free)", minimum=0)
     normal: float = setting(2.5, "L1 on the accumulated (unnormalised) normal", minimum=0)
     roughness: float = setting(1.0, "L1 on blended roughness", minimum=0)
     f0: float = setting(1.0, "L1 on blended F0", minimum=0)
@@ -78,6 +79,10 @@ class ReconstructConfig:
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
     radiance_clamp: float = setting(0.0, "clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: "
                                     "5.0)", minimum=0)
+    origin_offset: float = setting(0.0016, "reflection rays start this far past their surface point, along the "
+                                   "reflected ray, as a fraction of the scene's size (the diagonal of the box "
+                                   "holding 98 percent of the initial Gaussians: 1 cm in a 4 x 2.5 x 4 m room); the "
+                                   "model stores the resulting length", exclusiveMinimum=0, maximum=0.1)
     checkpoint_every: int = setting(1000, "steps between checkpoints (and at the end)", minimum=1)
     log_every: int = setting(25, "steps between metrics-log lines", minimum=1)
     seed: int = setting(0, "random seed (ray batches, far field, fills)")
@@ -92,6 +97,9 @@ class ReconstructConfig:
             raise ValueError("reconstruct.threads is now reconstruct.tracer.num_threads")
         return from_dict(cls, d, "reconstruct")
 
-    def path(self) -> PathConfig:
-        """The path settings this model trains (and is rendered) with."""
-        return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler)
+    def path(self, scene_size: float) -> PathConfig:
+        """The path settings this model trains (and is rendered) with, in a scene of size ``scene_size`` (the
+        diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
+        so a scene scaled by any factor trains the same."""
+        return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler,
+                          origin_offset=self.origin_offset * scene_size)

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from models.capture import Capture, View
-from models.capture.layers import SUPERVISED
+from models.capture.layers import SUPERVISED, diffuse_radiance
 
 
 @dataclass
@@ -38,10 +38,13 @@ def view_rays(view: View) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_rayset(capture: Capture, split: str, radiance_clamp: float = 0.0) -> RaySet:
-    """All pixels of the ``split`` views with the target layers every view has."""
+    """All pixels of the ``split`` views with the target layers every view has. The ``diffuse`` target is the
+    view's diffuse + emission where it has an ``emission`` layer (``diffuse_radiance``): lights seen directly are
+    view-independent radiance of the Gaussians, which reflection rays then see as the path tracer does."""
     views = capture.split(split)
     if not views:
         raise ValueError(f"capture has no {split!r} views")
+    capture.require_complete(split, SUPERVISED)  # a partial layer is an error, not a loss silently off
     layers = [l for l in SUPERVISED if all(l in v.buffers for v in views)]
     o, d, m, vid = [], [], [], []
     targets: dict[str, list] = {l: [] for l in layers}
@@ -56,7 +59,7 @@ def build_rayset(capture: Capture, split: str, radiance_clamp: float = 0.0) -> R
         m.append(mask)
         vid.append(np.full(n, i))
         for l in layers:
-            t = v.buffers[l].reshape(n, -1)
+            t = (diffuse_radiance(v.buffers) if l == "diffuse" else v.buffers[l]).reshape(n, -1)
             if radiance_clamp > 0 and l in ("diffuse", "specular"):
                 t = np.minimum(t, radiance_clamp)
             targets[l].append(t)

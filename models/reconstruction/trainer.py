@@ -22,12 +22,14 @@ import torch
 from models.capture import Capture
 from models.capture.layers import GBUFFER, RADIANCE
 from models.gaussians import Gaussians
-from models.metrics.image import psnr
+from models.metrics.image import mse_to_psnr
 from models.pathtrace.paths import PathConfig, trace_paths
+from models.profiling import NO_TIMER
 from models.settings import config_hash, to_dict
 from models.tracer.output import TraceOutput
 from models.trained import ModelSettings
 
+from .batches import RayBatcher
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
@@ -41,10 +43,12 @@ PARAM_LR = {  # Gaussians field -> LearningRates field
     "diffuse": "diffuse", "normals": "normal", "roughness": "roughness", "f0": "f0",
 }
 REFERENCE_HEIGHT = 768  # image height the reference pruning threshold is stated at
+FINITE_CHECK_EVERY = 25  # steps between read-backs of the finiteness flags (trainer.check_finite)
 
 
 class Backend:
-    """What the trainer needs from a tracer: refit/rebuild on new parameters, then differentiable traces."""
+    """What the trainer needs from a tracer: refit/rebuild on new parameters, then differentiable traces; its
+    ``torch_device`` (if it has one) is where the trainer keeps parameters, rays and targets (default CPU)."""
 
     def update(self, gaussians: Gaussians) -> None: ...
 
@@ -56,7 +60,10 @@ class Trainer:
         self.config = config
         self.backend = backend
         self.rays: RaySet = build_rayset(capture, "train", config.radiance_clamp)
-        self.extent = capture.camera_extent()
+        self.extent = capture.camera_extent()  # 3DGS's scene extent: position learning rates, far field
+        # the size every length threshold is a fraction of: the initial geometry's, not the cameras' (cameras
+        # clustered in a big room give a small camera extent)
+        self.scene_size = scene_size(init)
         self.units = capture.meta.units
         self.centre = np.mean([v.camera.origin for v in self.rays.views], axis=0)
         self.decisions: list[str] = []
@@ -66,8 +73,17 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.far_field_added = False
-        self.params = {k: v.detach().clone().requires_grad_(True) for k, v in init.params().items()}
+        self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles the step
+        # parameters, rays and targets live where the backend traces (a CUDA tracer: on the GPU)
+        self.device = getattr(backend, "torch_device", None) or torch.device("cpu")
+        self.batches = RayBatcher(self.rays, self.device)
+        self.params = {k: v.detach().to(self.device).clone().requires_grad_(True) for k, v in init.params().items()}
+        self.finite_at = 0  # last step whose parameters were checked finite
+        self._nonfinite = torch.zeros(len(self.params), device=self.device)  # per parameter: steps skipped
+        self._one = torch.ones((), device=self.device)
         self.optimizer = self._make_optimizer()
+        # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
+        self.inputs: dict[str, str] = {}
         for d in self.decisions:
             log.info("decision: %s", d)
 
@@ -84,6 +100,11 @@ class Trainer:
                 weights[layer] = w
         if "diffuse" not in weights:
             raise ValueError("reconstruction needs the diffuse buffer (loss weight > 0 and the layer in the capture)")
+        emitting = [v for v in self.rays.views if "emission" in v.buffers]
+        if emitting:  # build_rayset's diffuse target (models.capture.layers.diffuse_radiance)
+            peak = max(float(v.buffers["emission"].max()) for v in emitting)
+            self.decisions.append(f"loss diffuse: target diffuse + emission (lights seen directly, max {peak:.3g}) "
+                                  f"in {len(emitting)} of {len(self.rays.views)} training views")
         return weights
 
     def _needs_reflections(self) -> bool:
@@ -143,7 +164,10 @@ class Trainer:
         if found is None:
             return 0.0
         x, r, _ = found
-        out = self.backend.trace(x + 0.01 * r, r, init)
+        # start past the surface's own initial Gaussians (one median initial size; those are scene-relative too)
+        offset = max(self.config.path(self.scene_size).origin_offset,
+                     float(init.log_scales.detach().exp().amax(1).median()))
+        out = self.backend.trace(x + offset * r, r, init)
         return float((out.hit_count.reshape(-1) == 0).float().mean())
 
     # ----------------------------------------------------------------- parameters
@@ -151,8 +175,14 @@ class Trainer:
         return Gaussians(**self.params)
 
     def _make_optimizer(self) -> torch.optim.Adam:
+        """Adam over one group per parameter (their learning rates differ), fused (one kernel per group, no
+        per-tensor Python) where torch has it for these tensors, else the multi-tensor (foreach) one. Same update
+        as the single-tensor Adam up to float rounding."""
         groups = [{"params": [p], "name": k, "lr": self._base_lr(k)} for k, p in self.params.items()]
-        return torch.optim.Adam(groups, eps=self.config.adam_eps)
+        try:
+            return torch.optim.Adam(groups, eps=self.config.adam_eps, fused=True)
+        except RuntimeError:  # fused unsupported on this device / dtype
+            return torch.optim.Adam(groups, eps=self.config.adam_eps, foreach=True)
 
     def _base_lr(self, name: str) -> float:
         lr = getattr(self.config.lr, PARAM_LR[name])
@@ -176,7 +206,7 @@ class Trainer:
                 value = value[keep]
                 moments = {k: v[keep] for k, v in moments.items()}
             if extra is not None:
-                add = getattr(extra, name).to(value.dtype)
+                add = getattr(extra, name).to(value.device, value.dtype)
                 value = torch.cat([value, add])
                 moments = {k: torch.cat([v, torch.zeros_like(add)]) for k, v in moments.items()}
             new = value.clone().requires_grad_(True)
@@ -198,14 +228,20 @@ class Trainer:
         n = self.config.rays_per_step
         if n <= 0:
             view = int(torch.randint(len(self.rays.views), (1,), generator=self.generator))
-            return self.rays.view_rays(view)
-        return self.rays.subset(torch.randint(len(self.rays), (n,), generator=self.generator))
+            return self.batches.view(view)
+        return self.batches.sample(torch.randint(len(self.rays), (n,), generator=self.generator))
 
     def losses(self, batch: RaySet, reflections: bool) -> tuple[torch.Tensor, dict]:
         g = self.gaussians()
         self.backend.update(g)
-        path_cfg = self.config.path() if reflections else PathConfig(max_path_length=1, sampler=self.config.sampler)
-        out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
+        path_cfg = (self.config.path(self.scene_size) if reflections
+                    else PathConfig(max_path_length=1, sampler=self.config.sampler))
+        with self.timer.section("path_sampling"):
+            out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
+        with self.timer.section("losses"):
+            return self._loss_terms(batch, out, reflections)
+
+    def _loss_terms(self, batch: RaySet, out, reflections: bool) -> tuple[torch.Tensor, dict]:
         terms = {}
         m = batch.mask
         for layer, w in self.weights.items():
@@ -217,15 +253,24 @@ class Trainer:
                 pred = out.primary.layer(layer)
             target = batch.targets[layer]
             err = (pred - target.reshape(pred.shape)).abs()
-            if layer in GBUFFER:  # G-buffer values exist only where the ray hits geometry
-                err = err[m] if m.any() else err[:0]
-            terms[layer] = w * err.mean() if err.numel() else pred.sum() * 0
+            if layer == "depth":  # in units of the scene's size, so a scaled scene trains the same
+                err = err * (DEPTH_UNIT_SIZE / self.scene_size)
+            if layer in GBUFFER:  # G-buffer values exist only where the ray hits geometry (mean over those)
+                count = (m.sum() * err.shape[1]).clamp_min(1)  # on the device: no read-back to branch on
+                terms[layer] = w * torch.where(m[:, None], err, 0.0).sum() / count
+            else:
+                terms[layer] = w * err.mean() if err.numel() else pred.sum() * 0
         total = sum(terms.values())
-        metrics = {f"loss_{k}": v.item() for k, v in terms.items()}
-        metrics["loss"] = total.item()
-        metrics["psnr_diffuse"] = psnr(out.primary.diffuse.detach(), batch.targets["diffuse"])
+        names = [*(f"loss_{k}" for k in terms), "loss", "mse_diffuse"]
+        values = [*terms.values(), total, _mse(out.primary.diffuse, batch.targets["diffuse"])]
         if reflections and "specular" in batch.targets:
-            metrics["psnr_specular"] = psnr(out.specular.detach(), batch.targets["specular"])
+            names.append("mse_specular")
+            values.append(_mse(out.specular, batch.targets["specular"]))
+        host = dict(zip(names, torch.stack([v.detach().double() for v in values]).tolist()))  # one read-back
+        metrics = {k: v for k, v in host.items() if not k.startswith("mse_")}
+        for k in ("diffuse", "specular"):
+            if f"mse_{k}" in host:
+                metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])
         return total, metrics
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str) -> None:
@@ -244,7 +289,7 @@ class Trainer:
         reflections = self.reflections and self.step >= cfg.warmup
         if reflections and self.far_field and not self.far_field_added:
             # the fills look at the captured scene alone: its box, and its transmittance (not the far shell's)
-            scene = self.gaussians()
+            scene = self.gaussians() if self.device.type == "cpu" else self.gaussians().to("cpu")
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed)
             self._replace(extra=ff)
             self.far_field_added = True
@@ -270,13 +315,15 @@ class Trainer:
                 group["lr"] = self.position_lr(self.step)
         total, metrics = self.losses(self.sample_batch(), reflections)
         self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        for name, p in self.params.items():
-            if p.grad is not None and not torch.isfinite(p.grad).all():
-                raise FloatingPointError(f"step {self.step}: non-finite gradient in {name}")
-        self.optimizer.step()
-        self._clamp()
+        with self.timer.section("autograd"):
+            total.backward()
+        with self.timer.section("optimizer"):
+            self._skip_non_finite()
+            self.optimizer.step()
+            self._clamp()
         self.step += 1
+        if self.step % FINITE_CHECK_EVERY == 0:
+            self.check_finite()
         if cfg.prune_every > 0 and self.step >= cfg.prune_from and self.step % cfg.prune_every == 0:
             metrics["pruned"] = self.prune()
         metrics["step"] = self.step
@@ -287,12 +334,12 @@ class Trainer:
         """[N] accumulated blending weight per Gaussian, averaged over ``views`` (d sum(diffuse_R) / d diffuse_i,R);
         with ``reflections``, plus its weight in the traced reflections (d sum(specular_R) / d diffuse_i,R:
         bounce Gaussians are the radiance cache), so what the views see only in mirrors is kept too."""
-        acc = torch.zeros(len(self.params["means"]))
-        path_cfg = self.config.path()
+        acc = torch.zeros(len(self.params["means"]), device=self.device)
+        path_cfg = self.config.path(self.scene_size)
         for v in views:
             g = Gaussians(**{k: p.detach().clone().requires_grad_(k == "diffuse") for k, p in self.params.items()})
             self.backend.update(g)
-            rays = self.rays.view_rays(v)
+            rays = self.batches.view(v)
             if reflections:
                 out = trace_paths(self.backend.trace, rays.origins, rays.dirs, g, path_cfg, self.generator)
                 seen = out.primary.diffuse[:, 0].sum() + out.specular[:, 0].sum()
@@ -317,13 +364,36 @@ class Trainer:
 
     def settings(self) -> ModelSettings:
         """How the trained model renders (stored as its model.yaml): this run's tracer and path settings."""
-        return ModelSettings(tracer=self.config.tracer, path=self.config.path(), units=self.units,
+        return ModelSettings(tracer=self.config.tracer, path=self.config.path(self.scene_size), units=self.units,
                              training={"config_hash": config_hash(to_dict(self.config, runtime=False)), "steps": self.step,
                                        "gaussians": len(self.params["means"])})
 
     # ----------------------------------------------------------------- checkpoints
+    def fingerprint(self) -> dict:
+        """What decides the result of a run: the config (without runtime and logging-only keys) and the
+        digests of its inputs. A checkpoint resumes only a run with the same fingerprint."""
+        config = to_dict(self.config, runtime=False)
+        for key in RESUME_IGNORED:
+            config.pop(key, None)
+        return {"config": config, "inputs": dict(self.inputs)}
+
+    def resume_mismatch(self, state: dict) -> str | None:
+        """Why the checkpoint ``state`` cannot be resumed by this run (None when it can)."""
+        theirs = state.get("fingerprint")
+        if theirs is None:
+            return "it records no config (written by an older version)"
+        ours = self.fingerprint()
+        differences = [f"{key}: {a!r} -> {b!r}" for key, a, b in _flat_differences(theirs["config"], ours["config"])]
+        differences += [f"{name} changed" for name in sorted(set(theirs["inputs"]) | set(ours["inputs"]))
+                        if theirs["inputs"].get(name) != ours["inputs"].get(name)]
+        if not differences:
+            return None
+        more = f" (+{len(differences) - 4} more)" if len(differences) > 4 else ""
+        return "it was written under another config: " + "; ".join(differences[:4]) + more
+
     def state_dict(self) -> dict:
         return {
+            "fingerprint": self.fingerprint(),
             "step": self.step,
             "params": {k: v.detach().clone() for k, v in self.params.items()},
             "optimizer": self.optimizer.state_dict(),
@@ -332,21 +402,99 @@ class Trainer:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = state["step"]
+        self.step = self.finite_at = state["step"]  # (a checkpoint is written only after a finiteness check)
         self.far_field_added = state["far_field_added"]
-        self.params = {k: v.clone().requires_grad_(True) for k, v in state["params"].items()}
+        self.params = {k: v.to(self.device).clone().requires_grad_(True) for k, v in state["params"].items()}
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
 
+    def _skip_non_finite(self) -> None:
+        """Flag, on the device (no read-back), the parameters whose gradient holds NaN / Inf, and make this step's
+        Adam update a no-op if any does (the fused Adam's ``found_inf``: parameters, moments and step counts stay),
+        so a bad gradient never reaches the parameters, hence the tracer. ``check_finite`` reads the flags."""
+        flags = torch.zeros(len(self.params), device=self.device)
+        for i, p in enumerate(self.params.values()):
+            if p.grad is not None:  # GradScaler's check; the gradient is multiplied by 1 (unchanged)
+                torch._amp_foreach_non_finite_check_and_unscale_([p.grad], flags[i], self._one)
+        self._nonfinite += flags
+        found = flags.amax()
+        if all(group.get("fused") for group in self.optimizer.param_groups):  # (a loaded state may say otherwise)
+            self.optimizer.found_inf = found
+        elif found.item():  # the multi-tensor Adam takes no found_inf: a read-back, then no gradient, no update
+            self.optimizer.zero_grad(set_to_none=True)
+
+    def check_finite(self) -> None:
+        """Raise FloatingPointError if a step since the last check had a non-finite gradient (its update was
+        skipped) or a parameter holds NaN / Inf: one read-back, every FINITE_CHECK_EVERY steps and before a
+        checkpoint is written (not per step)."""
+        n = len(self.params)
+        params_finite = torch.stack([torch.isfinite(p).all() for p in self.params.values()]).to(self._nonfinite)
+        values = torch.cat([self._nonfinite, 1 - params_finite]).tolist()
+        problems = []
+        bad_grads = [f"{name} ({int(c)} steps)" for name, c in zip(self.params, values[:n]) if c]
+        if bad_grads:
+            problems.append(f"non-finite gradient in {', '.join(bad_grads)} since step {self.finite_at} (those "
+                            "Adam updates were skipped)")
+        bad_params = [name for name, c in zip(self.params, values[n:]) if c]
+        if bad_params:
+            problems.append(f"non-finite values in {', '.join(bad_params)}")
+        if problems:
+            raise FloatingPointError(f"step {self.step}: " + "; ".join(problems))
+        self.finite_at = self.step
+
     def save_checkpoint(self, path: Path) -> None:
+        self.check_finite()
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, path)
 
+    @staticmethod
+    def read_checkpoint(path: Path) -> dict:
+        # on the CPU: a checkpoint written on a GPU reads anywhere; load_state_dict moves it to the trainer's device
+        return torch.load(path, weights_only=False, map_location="cpu")
+
     def load_checkpoint(self, path: Path) -> None:
-        self.load_state_dict(torch.load(path, weights_only=False))
+        self.load_state_dict(self.read_checkpoint(path))
+
+
+# depth errors are measured in units of (scene size / DEPTH_UNIT_SIZE): metres in a 4 x 2.5 x 4 m room (the
+# paper's synthetic rooms, whose diagonal is ~6 m), and the same loss whatever a capture's scale
+DEPTH_UNIT_SIZE = 6.0
+
+
+def scene_size(gaussians: Gaussians) -> float:
+    """Diagonal of the box holding the middle 98% of the Gaussians' centres along each axis (robust to SfM
+    outliers); the length every threshold of the reconstruction is a fraction of."""
+    means = gaussians.means.detach().cpu().double()
+    if len(means) < 2:
+        raise ValueError("the initial Gaussians are fewer than 2: no scene size to measure")
+    lo, hi = torch.quantile(means, 0.01, dim=0), torch.quantile(means, 0.99, dim=0)
+    size = float((hi - lo).norm())
+    if not size > 0:
+        raise ValueError("the initial Gaussians all sit at one point: no scene size to measure")
+    return size
+
+
+RESUME_IGNORED = ("log_every", "checkpoint_every")  # how a run reports, not what it computes
+
+
+def _flat_differences(a: dict, b: dict, prefix: str = "") -> list[tuple[str, object, object]]:
+    """(dotted key, a's value, b's value) for every key whose value differs between two nested mappings."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, dict) and isinstance(y, dict):
+            out += _flat_differences(x, y, f"{prefix}{key}.")
+        elif x != y:
+            out.append((f"{prefix}{key}", x, y))
+    return out
+
+
+def _mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error in float64 on the tensors' device (as models.metrics.image.psnr). # [] float64"""
+    return (pred.detach().double() - target.detach().double().reshape(pred.shape)).square().mean()
 
 
 def train(trainer: Trainer, out_dir: Path, progress: bool = True,

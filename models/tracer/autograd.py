@@ -25,7 +25,8 @@ class TraceFunction(torch.autograd.Function):
         inputs = list(ctx.saved_tensors)
         up = {"diffuse": g_diffuse, "depth": g_depth, "normal": g_normal, "roughness": g_rough, "f0": g_f0,
               "transmittance": g_trans}
-        grads = ctx.tracer._backward(ctx.state, up, inputs)
+        with ctx.tracer.timer.section("tracer_host"):
+            grads = ctx.tracer._backward(ctx.state, up, inputs)
         return (None, None, None, *grads)
 
 

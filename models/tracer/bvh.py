@@ -36,10 +36,12 @@ class GaussianBvh:
 
     def update(self, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
                opacity_logits: torch.Tensor, kernel_p: int, alpha_min: float, rebuild: bool = False,
-               run=None, n_chunks: int = 1) -> None:
+               run=None, n_chunks: int = 1, convert=None) -> None:
         """Raw parameters [N,3], [N,4], [N,3], [N] -> packed records, bounds; refit or rebuild.
-        run(jobs) executes the chunk launches (e.g. concurrently); default: in turn."""
+        run(jobs) executes the chunk launches (e.g. concurrently); default: in turn. convert(tensor, dtype) makes
+        the Warp arrays of the parameters (default ``to_warp`` on this device; the tracer passes its cached views)."""
         run = run or (lambda jobs: [job() for job in jobs])
+        convert = convert or (lambda t, dtype: to_warp(t, dtype, self.device))
         start = time.perf_counter()
         n = means.shape[0]
         self.last_was_rebuild = rebuild or self.packed is None or n != self.count
@@ -52,16 +54,17 @@ class GaussianBvh:
             self.lowers = wp.empty(n, dtype=wp.vec3, device=self.device)
             self.uppers = wp.empty(n, dtype=wp.vec3, device=self.device)
             self.packed = wp.empty(n, dtype=vec16, device=self.device)
-        raw = [to_warp(means, wp.vec3, self.device), to_warp(quats, wp.vec4, self.device),
-               to_warp(log_scales, wp.vec3, self.device), to_warp(opacity_logits, float, self.device)]
+        raw = [convert(means, wp.vec3), convert(quats, wp.vec4), convert(log_scales, wp.vec3),
+               convert(opacity_logits, float)]
         outs = [self.packed, self.lowers, self.uppers]
 
         def prepare(a: int, b: int) -> None:
             wp.launch(prepare_kernel, dim=b - a, device=self.device,
                       inputs=[*(x[a:b] for x in raw), kernel_p, alpha_min, *(x[a:b] for x in outs)])
 
-        # CPU: split over the tracer's threads (a launch uses one core); no atomics involved
-        run([(lambda a=a, b=b: prepare(a, b)) for a, b in ray_chunks(n, n_chunks)])
+        # CPU: split over the tracer's threads (a launch uses one core), in chunks of >= 8192 Gaussians (~1 ms of
+        # kernel: a smaller scene is one launch); no atomics involved
+        run([(lambda a=a, b=b: prepare(a, b)) for a, b in ray_chunks(n, min(n_chunks, -(-n // 8192)))])
         if not self.use_wp_bvh:
             self.bvh, self.count = None, n
         elif self.last_was_rebuild:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import torch
 import warp as wp
 
 
+@lru_cache(maxsize=None)
 def torch_device_for(device: str) -> torch.device | None:
     """The torch device aliasing Warp `device`, or None when torch cannot reach it
     (e.g. a CPU-only torch build with a CUDA Warp device): then data is copied."""
@@ -32,6 +35,11 @@ def to_warp(t: torch.Tensor, dtype, device: str) -> wp.array:
     if tdev is not None:
         return wp.from_torch(t.to(tdev), dtype=dtype, requires_grad=False)
     return wp.array(t.cpu().numpy(), dtype=dtype, device=device)
+
+
+def is_alias(a: wp.array, t: torch.Tensor) -> bool:
+    """Whether ``a`` (from ``to_warp(t, ...)``) shares ``t``'s memory rather than holding a copy."""
+    return t.numel() > 0 and a.ptr == t.data_ptr()
 
 
 def to_torch(a: wp.array, device: torch.device) -> torch.Tensor:

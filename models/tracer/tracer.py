@@ -11,6 +11,7 @@ Rays may start anywhere (camera or reflection vertices); dirs need not be unit l
 from __future__ import annotations
 
 import logging
+import math
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
@@ -18,11 +19,12 @@ import warp as wp
 
 import models.tracer.kernels as kernels
 from models.gaussians.scene import Gaussians
+from models.profiling import NO_TIMER
 from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
 from models.tracer.chain import chain_kernel
 from models.tracer.config import TRAVERSALS, TracerConfig
-from models.tracer.interop import to_torch, to_warp
+from models.tracer.interop import is_alias, to_torch, to_warp, torch_device_for
 from models.tracer.launch import (
     RAY_GRAD_FIELDS,
     ReplayArrays,
@@ -33,6 +35,7 @@ from models.tracer.launch import (
     outputs_view,
     ray_grads_struct,
     ray_grads_view,
+    rows,
     run_chunks,
     sum_grads,
     thread_stripes,
@@ -69,14 +72,24 @@ class Tracer:
         self._no_ordered = empty_ordered(self.device)
         self.capacity = self.config.replay_capacity
         self.scene_box = (wp.vec3(0.0), wp.vec3(0.0))
+        self.scene_box_values = (0.0,) * 6  # the same as floats (part of the launch parameters' key)
         self.scene_diagonal = 1.0
         self.box_diagonal = 1.0
+        self._prm, self._prm_key = None, None  # the last launch parameters (_params)
         threads = self.config.num_threads if self.is_cpu else 1
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="tracer") if threads > 1 else None
         self._threads = threads
         self._scene_key = None
+        self._aliases: dict[tuple, wp.array] = {}  # Warp views of the parameters of the last update()
         self._loaded = False
         self.last_overflow_rays = 0
+        self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles
+
+    @property
+    def torch_device(self) -> torch.device:
+        """Where tensors alias this tracer's arrays without copies (the CPU for a CUDA device that torch cannot
+        reach: then every call copies)."""
+        return torch_device_for(self.device) or torch.device("cpu")
 
     def close(self) -> None:
         """Stop the CPU worker threads (also done when the tracer is garbage collected)."""
@@ -96,30 +109,42 @@ class Tracer:
         Gaussians changed, `rebuild` is set or config.always_rebuild."""
         if not isinstance(gaussians, Gaussians):
             raise TypeError(f"gaussians must be a Gaussians, got {type(gaussians).__name__}")
-        self.bvh.update(gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
-                        self.config.kernel_p, self.config.alpha_min, rebuild=rebuild or self.config.always_rebuild,
-                        run=lambda jobs: run_chunks(self._pool, jobs), n_chunks=self._threads)
-        if self.ordered is not None and self.bvh.count > 0:
-            if self.bvh.last_was_rebuild:
-                self.ordered.rebuild(self.bvh.lowers, self.bvh.uppers, self.bvh.packed)
-            else:
-                self.ordered.refit(self.bvh.packed)
-        self._scene_key = self._key(gaussians)
-        self._scene_box()
+        key = self._key(gaussians)
+        if self._scene_key is None or any(a[0] is not b[0] for a, b in zip(self._scene_key, key)):
+            self._aliases.clear()  # other tensors: drop the views of the old ones (and their memory)
+        with self.timer.section("tracer_host"), self.timer.section("bvh_update"):
+            self.bvh.update(gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
+                            self.config.kernel_p, self.config.alpha_min, rebuild=rebuild or self.config.always_rebuild,
+                            run=lambda jobs: run_chunks(self._pool, jobs), n_chunks=self._threads,
+                            convert=self._param_array)
+            if self.ordered is not None and self.bvh.count > 0:
+                if self.bvh.last_was_rebuild:
+                    self.ordered.rebuild(self.bvh.lowers, self.bvh.uppers, self.bvh.packed)
+                else:
+                    self.ordered.refit(self.bvh.packed)
+        with self.timer.section("tracer_host"):
+            self._scene_key = key
+            self._scene_box()
 
     def _scene_box(self) -> None:
-        """The union of the Gaussians' world bounds (the interval traversal clips rays to it)."""
+        """The union of the Gaussians' world bounds (the interval traversal clips rays to it). Reduced where the
+        bounds live; one read-back of 8 numbers."""
         if self.bvh.count > 0:
-            lo = to_torch(self.bvh.lowers, torch.device("cpu")).amin(0)
-            hi = to_torch(self.bvh.uppers, torch.device("cpu")).amax(0)
-            self.scene_box = (wp.vec3(*lo.tolist()), wp.vec3(*hi.tolist()))
-            self.scene_diagonal = float((hi - lo).norm())
+            dev = torch_device_for(self.device) or torch.device("cpu")
+            lowers, uppers = to_torch(self.bvh.lowers, dev), to_torch(self.bvh.uppers, dev)
             stride = max(1, self.bvh.count // 4096)  # a strided sample: cheap at every training step
-            lows = to_torch(self.bvh.lowers, torch.device("cpu"))[::stride]
-            highs = to_torch(self.bvh.uppers, torch.device("cpu"))[::stride]
-            self.box_diagonal = float((highs - lows).norm(dim=1).median())
+            box_diagonal = (uppers[::stride] - lowers[::stride]).norm(dim=1).median()
+            lo, hi = lowers.min(0).values, uppers.max(0).values  # (faster than amin / amax over [N, 3] on a CPU)
+            values = torch.cat([lo, hi, box_diagonal.reshape(1), (hi - lo).norm().reshape(1)]).tolist()
+            if not all(math.isfinite(v) for v in values):  # (NaN propagates through min / max)
+                raise FloatingPointError("non-finite Gaussian bounds (NaN / Inf in means, quats or log_scales): "
+                                         "the BVH traversal would not end")
+            self.scene_box = (wp.vec3(*values[:3]), wp.vec3(*values[3:6]))
+            self.scene_box_values = tuple(values[:6])
+            self.box_diagonal, self.scene_diagonal = values[6], values[7]
         else:
             self.scene_box = (wp.vec3(0.0), wp.vec3(0.0))
+            self.scene_box_values = (0.0,) * 6
             self.scene_diagonal = 1.0
 
     @staticmethod
@@ -140,9 +165,10 @@ class Tracer:
     def trace(self, origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussians) -> TraceOutput:
         """Trace R rays. origins, dirs: [R, 3]. Differentiable wrt the Gaussian parameters
         (diffuse, depth, normal, roughness, f0 and transmittance outputs)."""
-        origins, dirs = self._check_rays(origins, dirs)
-        self._ensure_updated(gaussians)
-        res = TraceFunction.apply(self, origins, dirs, *gaussians.params().values())
+        with self.timer.section("tracer_host"):
+            origins, dirs = self._check_rays(origins, dirs)
+            self._ensure_updated(gaussians)
+            res = TraceFunction.apply(self, origins, dirs, *gaussians.params().values())
         diffuse, depth, normal, rough, f0, trans, hits, blended, cand, obb = res
         return TraceOutput(diffuse=diffuse, depth=depth, normal=normal, roughness=rough, f0=f0,
                            transmittance=trans, hit_count=hits, blended_count=blended, candidates=cand,
@@ -221,7 +247,14 @@ class Tracer:
         return origins.detach(), dirs.detach()
 
     def _params(self, gid: int) -> TraceParams:
+        """The launch parameters. The struct is kept while none of its values changes (setting a field costs ~7 us
+        of Python, and every trace launches twice); it holds the bound arrays, so their ids are not reused."""
         c = self.config
+        key = (gid, self.capacity, self.box_diagonal, self.scene_box_values, id(self.bvh.lowers), id(self.bvh.uppers),
+               c.kernel_p, c.alpha_min, c.alpha_max, c.transmittance_threshold, c.t_min, c.k, c.world_aabb_only,
+               c.traversal, c.window)
+        if key == self._prm_key:
+            return self._prm
         prm = TraceParams()
         prm.bvh = wp.uint64(gid)
         prm.kernel_p = c.kernel_p
@@ -236,6 +269,7 @@ class Tracer:
         prm.window = c.window * self.box_diagonal
         prm.scene_lo, prm.scene_hi = self.scene_box
         prm.lowers, prm.uppers = self.bvh.lowers, self.bvh.uppers
+        self._prm, self._prm_key = prm, key
         return prm
 
     def _ordered_struct(self, a: int, b: int) -> OrderedBvh:
@@ -249,15 +283,26 @@ class Tracer:
         out.heap_keys, out.heap_nodes = self._heap[0][a:b], self._heap[1][a:b]
         return out
 
+    def _param_array(self, t: torch.Tensor, dtype) -> wp.array:
+        """``to_warp(t, dtype)``; an alias of a parameter of the last update() is made once and reused (it stays
+        valid while the optimiser updates the tensor in place), so a step converts no parameter again."""
+        key = (t.data_ptr(), tuple(t.shape), t.dtype, t.device, dtype)
+        array = self._aliases.get(key)
+        if array is None:
+            array = to_warp(t, dtype, self.device)
+            if is_alias(array, t):
+                self._aliases[key] = array
+        return array
+
     def _gaussian_data(self, inputs: list[torch.Tensor]) -> GaussianData:
         """inputs: the raw parameters in PARAM_SHAPES order; geometry comes from update()."""
         diffuse, normals, rough, f0 = inputs[4:]
         g = GaussianData()
         g.packed = self.bvh.packed  # geometry (mean, M, opacity, cutoff) from the last update()
-        g.diffuse = to_warp(diffuse, wp.vec3, self.device)
-        g.normal = to_warp(normals, wp.vec3, self.device)
-        g.roughness = to_warp(rough, float, self.device)
-        g.f0 = to_warp(f0, wp.vec3, self.device)
+        g.diffuse = self._param_array(diffuse, wp.vec3)
+        g.normal = self._param_array(normals, wp.vec3)
+        g.roughness = self._param_array(rough, float)
+        g.f0 = self._param_array(f0, wp.vec3)
         return g
 
     def _load(self) -> None:
@@ -286,13 +331,13 @@ class Tracer:
             jobs = [(lambda i=i, chunks=chunks: [launch(prm, rep, outs, a, b, grads[i] if grads else None)
                                                  for a, b in chunks])
                     for i, chunks in enumerate(stripes)]
-            run_chunks(self._pool, jobs)
-            needed = to_torch(outs["needed"], torch.device("cpu"))
-            n_over = int((needed > 0).sum())
+            with self.timer.section("tracer_forward"):
+                run_chunks(self._pool, jobs)
+            needed = to_torch(outs["needed"], torch_device_for(self.device) or torch.device("cpu"))
+            n_over, most = (int(v) for v in torch.stack([(needed > 0).sum(), needed.max().long()]).tolist())
             if n_over == 0:
                 break
             self.last_overflow_rays += n_over
-            most = int(needed.max())
             ceiling = self.config.max_replay_capacity
             if ceiling is not None and most > ceiling:
                 raise RuntimeError(
@@ -313,7 +358,7 @@ class Tracer:
 
         def launch(prm, rep, outs, a, b, _grads):
             wp.launch(kernels.forward_kernel, dim=b - a, device=self.device,
-                      inputs=[o[a:b], d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
+                      inputs=[rows(o, a, b), rows(d, a, b), gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
                               self._ordered_struct(a, b)])
 
         outs, rep, _ = self._run(n_rays, inputs[0].shape[0], gdata, launch, with_grads=False)
@@ -333,11 +378,12 @@ class Tracer:
 
             def job(i, a, b):
                 wp.launch(kernels.backward_kernel, dim=b - a, device=self.device,
-                          inputs=[state["o"][a:b], state["d"][a:b], gdata, prm, rep.view(a, b),
+                          inputs=[rows(state["o"], a, b), rows(state["d"], a, b), gdata, prm, rep.view(a, b),
                                   outputs_view(outs, a, b), ray_grads_view(up, a, b), grads_struct(grads[i])])
 
-            run_chunks(self._pool, [(lambda i=i, chunks=chunks: [job(i, a, b) for a, b in chunks])
-                                    for i, chunks in enumerate(stripes)])
+            with self.timer.section("tracer_backward"):
+                run_chunks(self._pool, [(lambda i=i, chunks=chunks: [job(i, a, b) for a, b in chunks])
+                                        for i, chunks in enumerate(stripes)])
         return self._grads_to_torch(sum_grads(grads), inputs)
 
     def _grads_to_torch(self, grads: dict[str, wp.array], inputs) -> list[torch.Tensor]:
@@ -345,14 +391,16 @@ class Tracer:
         the geometry part goes through the Warp chain kernel."""
         means, quats, log_scales, logits = inputs[:4]
         n = means.shape[0]
-        g_quats = wp.zeros(n, dtype=wp.vec4, device=self.device)
-        g_log_scales = wp.zeros(n, dtype=wp.vec3, device=self.device)
-        g_logits = wp.zeros(n, dtype=float, device=self.device)
+        alloc = wp.empty if n else wp.zeros  # the chain kernel writes every element
+        g_quats = alloc(n, dtype=wp.vec4, device=self.device)
+        g_log_scales = alloc(n, dtype=wp.vec3, device=self.device)
+        g_logits = alloc(n, dtype=float, device=self.device)
         if n:
-            wp.launch(chain_kernel, dim=n, device=self.device,
-                      inputs=[to_warp(quats, wp.vec4, self.device), to_warp(log_scales, wp.vec3, self.device),
-                              to_warp(logits, float, self.device), grads["w2l"], grads["opacity"],
-                              g_quats, g_log_scales, g_logits])
+            inputs_chain = [self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3),
+                            self._param_array(logits, float), grads["w2l"], grads["opacity"],
+                            g_quats, g_log_scales, g_logits]
+            with self.timer.section("tracer_backward"):
+                wp.launch(chain_kernel, dim=n, device=self.device, inputs=inputs_chain)
         raw = [grads["means"], g_quats, g_log_scales, g_logits, grads["diffuse"], grads["normal"],
                grads["roughness"], grads["f0"]]
         return [to_torch(g, like.device).reshape(like.shape).to(like.dtype) for g, like in zip(raw, inputs)]

@@ -1,7 +1,11 @@
 """CLI: python -m stages.benchmark tracer [--sizes 50000,200000] [--res 128,256] [--threads 1,2]
 [--repeats 3] [--device cpu] [--torch-threads 1] [--out FILE.json] [--quick]
      python -m stages.benchmark sweep --capture results/demo/capture --scene demo --out results/sweep/demo
-[--iterations N] [--quick] (speed/accuracy sweep -> sweep.json; python -m stages.report sweep draws it)"""
+[--iterations N] [--quick] (speed/accuracy sweep -> sweep.json; python -m stages.report sweep draws it)
+     python -m stages.benchmark train-step [--rays 64,1024,4096] [--views 128x96] [--large] [--device cpu,cuda]
+[--gaussians 50000] [--steps 5] [--out FILE.json] [--quick] (ms per training step by section; see train-step --help)
+     python -m stages.benchmark buffernet-step [--init sd2] [--size 512] [--dtype bf16] [--device cuda]
+(one buffer-network training step; see buffernet-step --help)"""
 
 from __future__ import annotations
 
@@ -11,8 +15,10 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from stages.benchmark.tracer import TracerBenchmarkConfig, format_table, run_tracer_benchmark
+if TYPE_CHECKING:
+    from stages.benchmark.tracer import TracerBenchmarkConfig
 
 
 def _ints(text: str) -> list[int]:
@@ -40,6 +46,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--scene-n", type=int, help="scene types: number of Gaussians (default: each type's full size)")
     p.add_argument("--no-mitsuba", action="store_true", help="scene types: skip the Mitsuba 3 column")
     a = p.parse_args(argv)
+    from stages.benchmark.tracer import TracerBenchmarkConfig  # after parsing: --help without torch / Warp
+
     cfg = TracerBenchmarkConfig.quick() if a.quick else TracerBenchmarkConfig()
     for arg, name in (("sizes", "sizes"), ("res", "resolutions"), ("threads", "threads"), ("repeats", "repeats"),
                       ("device", "device"), ("seed", "seed"), ("torch_threads", "torch_threads")):
@@ -70,9 +78,6 @@ def write_json_atomic(path: Path, data: dict) -> None:
 
 
 def sweep_main(argv) -> int:
-    from stages.benchmark.sweep import SweepGrid, config_for_sweep, format_table, run_sweep
-    from stages.cli import single_threaded_torch
-    from stages.config import ConfigError, load_config
 
     p = argparse.ArgumentParser(
         prog="python -m stages.benchmark sweep",
@@ -93,6 +98,10 @@ def sweep_main(argv) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     a = p.parse_args(argv)
+    from stages.benchmark.sweep import SweepGrid, config_for_sweep, format_table, run_sweep
+    from stages.cli import single_threaded_torch
+    from stages.config import ConfigError, load_config
+
     single_threaded_torch()
     from models.capture import CaptureError, read_capture
 
@@ -113,11 +122,68 @@ def sweep_main(argv) -> int:
     return 0
 
 
+def _sizes(text: str) -> list[tuple[int, int]]:
+    if text == "none":
+        return []
+    try:
+        return [tuple(int(x) for x in v.lower().split("x")) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated WxH sizes, got {text!r}") from None
+
+
+def train_step_main(argv) -> int:
+    p = argparse.ArgumentParser(prog="python -m stages.benchmark train-step",
+                                description="Milliseconds per reconstruction training step (the real Trainer on a "
+                                "synthetic room capture built in memory), split into tracer kernels, path sampling, "
+                                "losses, autograd, optimizer and host overhead; prints a table, --out writes JSON.")
+    p.add_argument("--rays", type=_ints, help="random rays per step, one row each (default 64,1024,4096)")
+    p.add_argument("--views", type=_sizes, help="whole views per step, WxH (default 128x96; 'none' for no row)")
+    p.add_argument("--large", action=argparse.BooleanOptionalAction, default=None,
+                   help="also a whole 768x576 view (default: on CUDA only)")
+    p.add_argument("--device", help="comma-separated: cpu, cuda (default cpu, and cuda when available)")
+    p.add_argument("--gaussians", type=int, help="Gaussians in the room (default 50000)")
+    p.add_argument("--n-views", type=int, help="training views of the synthetic capture (default 4)")
+    p.add_argument("--steps", type=int, help="timed steps per row (default 5)")
+    p.add_argument("--threads", type=int, help="tracer CPU threads (default 2)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--out", type=Path, help="write the JSON result here")
+    p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test, not a measurement)")
+    a = p.parse_args(argv)
+    from stages.benchmark.train_step import TrainStepBenchmarkConfig, format_table, run_train_step_benchmark
+
+    cfg = TrainStepBenchmarkConfig.quick() if a.quick else TrainStepBenchmarkConfig()
+    for arg, name in (("rays", "rays"), ("views", "views"), ("large", "large_view"), ("gaussians", "n_gaussians"),
+                      ("n_views", "n_views"), ("steps", "steps"), ("threads", "threads"), ("seed", "seed")):
+        if getattr(a, arg) is not None:
+            setattr(cfg, name, getattr(a, arg))
+    if a.device:
+        cfg.devices = [d for d in a.device.split(",") if d]
+    try:
+        cfg.__post_init__()
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    result = run_train_step_benchmark(cfg, progress=lambda m: print(m, file=sys.stderr, flush=True))
+    print(format_table(result))
+    if a.out is not None:
+        write_json_atomic(a.out, result)
+        print(f"wrote {a.out}")
+    return 0
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["sweep"]:
         return sweep_main(argv[1:])
+    if argv[:1] == ["train-step"]:
+        return train_step_main(argv[1:])
+    if argv[:1] == ["buffernet-step"]:
+        from stages.benchmark.buffernet_step import buffernet_step_main
+
+        return buffernet_step_main(argv[1:], write_json_atomic)
     _, cfg, out = parse_args(argv)
+    from stages.benchmark.tracer import format_table, run_tracer_benchmark
+
     result = run_tracer_benchmark(cfg, progress=lambda m: print(m, file=sys.stderr, flush=True))
     print(format_table(result))
     if out is not None:

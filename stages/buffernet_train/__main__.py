@@ -65,9 +65,9 @@ def _cost(args: argparse.Namespace) -> int:
     import torch
 
     from models.buffernet import BufferNetPipeline
-    from models.buffernet.build import build_pipeline
+    from models.buffernet.build import RANDOM_INITS, build_pipeline
 
-    pipe = build_pipeline(args.model) if args.model in ("tiny", "small") else BufferNetPipeline.from_pretrained(args.model)
+    pipe = build_pipeline(args.model) if args.model in RANDOM_INITS else BufferNetPipeline.from_pretrained(args.model)
     pipe = pipe.to(args.device)
     rgb = np.random.default_rng(0).random((args.size, args.size, 3), dtype=np.float32)
     table = []
@@ -131,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
                        "Multi-GPU: launch with `accelerate launch -m stages.buffernet_train train ...`.")
     t.add_argument("--data", action="append", help="KIND:DIR, repeatable: hypersim:DIR, interiorverse:DIR[:split], "
                    "captures:DIR (one capture or a folder of captures, e.g. from `python -m stages.synth procedural`)")
-    t.add_argument("--init", help="tiny | small (random weights, SD2 architecture; default small) or a local folder: "
-                   "stable-diffusion-2 (diffusers layout) or a saved buffer network")
+    t.add_argument("--init", help="tiny | small (random weights, SD2 architecture; default small) | sd2 (random "
+                   "weights, SD2's exact configs, no download) or a local folder: stable-diffusion-2 (diffusers "
+                   "layout) or a saved buffer network")
     t.add_argument("--out", help="output folder (default results/buffernet)")
     _train_config_flags(t)
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints in --out")
@@ -145,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", help="write the table as JSON here")
     e.add_argument("--no-progress", action="store_true")
     c = sub.add_parser("cost", help="inference seconds per image: all buffers batched vs one pass per buffer")
-    c.add_argument("--model", default="small", help="tiny | small | a saved buffer network folder")
+    c.add_argument("--model", default="small", help="tiny | small | sd2 | a saved buffer network folder")
     c.add_argument("--size", type=int, default=128)
     c.add_argument("--repeat", type=int, default=5)
     c.add_argument("--device", default="cpu")

@@ -9,9 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-from models.capture import CaptureError, read_capture, write_capture
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
+from stages.output import run_stage, staged_folder
 from stages.provenance import write_stage_json
 
 
@@ -30,8 +30,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     single_threaded_torch()
-    from models.buffernet import BufferNetPipeline
+    from models.buffernet import BufferNetPipeline  # after parsing: --help answers at once
     from models.buffernet.fill import BuffersConfig, fill_buffers, network_path
+    from models.capture import POINTS_FILE, CaptureError, read_capture, write_capture, write_points_ply
+    from models.capture.points import find_sfm_points
 
     start = time.perf_counter()
     try:
@@ -48,23 +50,27 @@ def main(argv: list[str] | None = None) -> int:
         pipe = BufferNetPipeline.from_pretrained(model).to(args.device)
         capture = read_capture(args.capture)
         result, info = fill_buffers(capture, args.capture, pipe, cfg, progress=not args.no_progress)
+        points = find_sfm_points(args.capture)  # also nerfstudio's ply_file_path / colmap/sparse/0
     except (CaptureError, ConfigError, ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    write_capture(result, args.out)
-    for extra in ("points3D.ply", "sparse"):  # SfM points stay with the capture (init falls back on them)
-        src = args.capture / extra
-        if src.is_file():
-            shutil.copy2(src, args.out / extra)
-        elif src.is_dir():
-            shutil.copytree(src, args.out / extra, dirs_exist_ok=True)
-    (args.out / "buffers.json").write_text(json.dumps(info, indent=1))
-    write_stage_json(args.out, "buffers", section, time.perf_counter() - start, device=args.device,
-                     extra={"seconds_per_view": info["seconds_per_view"], "points": info["points"]})
+    with staged_folder(args.out) as out:
+        write_capture(result, out)
+        for extra in ("points3D.ply", "sparse"):  # SfM points stay with the capture (init falls back on them)
+            src = args.capture / extra
+            if src.is_file():
+                shutil.copy2(src, out / extra)
+            elif src.is_dir():
+                shutil.copytree(src, out / extra, dirs_exist_ok=True)
+        if points is not None and points[2] != args.capture / POINTS_FILE:  # named elsewhere: keep as points3D.ply
+            write_points_ply(out / POINTS_FILE, points[0], points[1])
+        (out / "buffers.json").write_text(json.dumps(info, indent=1))
+        write_stage_json(out, "buffers", section, time.perf_counter() - start, device=args.device,
+                         extra={"seconds_per_view": info["seconds_per_view"], "points": info["points"]})
     print(f"predicted {sorted({b for v in info['views'].values() for b in v['predicted']})} for "
           f"{len(info['views'])} view(s) in {time.perf_counter() - start:.1f} s -> {args.out}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_stage(main))

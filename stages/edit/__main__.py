@@ -18,12 +18,15 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from models.capture import CaptureError, read_capture
-from models.editing import EditSpec, parse_edit
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError, load_config
+from stages.output import run_stage, staged_folder
 from stages.provenance import write_stage_json
+
+if TYPE_CHECKING:
+    from models.editing import EditSpec
 
 log = logging.getLogger("stages.edit")
 
@@ -36,18 +39,28 @@ def _edit_args(p: argparse.ArgumentParser) -> None:
 
 
 def _load_edit(args: argparse.Namespace) -> tuple[EditSpec, dict]:
+    from models.editing import EditSpecError, parse_edit
+
     if args.edit_json:
         try:
             raw = json.loads(args.edit_json)
         except json.JSONDecodeError as e:
             raise ValueError(f"--edit-json: invalid JSON ({e})") from None
     elif args.edit_file:
-        import yaml
+        from models.settings import read_yaml_mapping
 
-        edits = (yaml.safe_load(args.edit_file.read_text()) or {}).get("edits") or {}
+        if not args.edit_file.is_file():
+            raise ValueError(f"--edit-file {args.edit_file}: no such file")
+        edits = read_yaml_mapping(args.edit_file).get("edits") or {}
+        if not isinstance(edits, dict):
+            raise ValueError(f"{args.edit_file}: 'edits' must be a mapping of named edits, got "
+                             f"{type(edits).__name__} {edits!r}")
         if args.edit not in edits:
-            raise ValueError(f"{args.edit_file}: no edit {args.edit!r} under edits: (found: {', '.join(edits) or 'none'})")
-        raw = edits[args.edit]
+            raise ValueError(f"{args.edit_file}: no edit {args.edit!r} under edits: (found: {', '.join(map(str, edits)) or 'none'})")
+        try:
+            return parse_edit(args.edit, edits[args.edit]), edits[args.edit]
+        except EditSpecError as e:
+            raise ValueError(f"{args.edit_file}: {e}") from None
     elif args.scene:
         edits = load_config(args.scene, presets=args.preset).get("edits") or {}
         if args.edit not in edits:
@@ -61,6 +74,7 @@ def _load_edit(args: argparse.Namespace) -> tuple[EditSpec, dict]:
 def _apply(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from models.capture import read_capture
     from models.editing import apply_edit
     from models.rendering import RenderConfig, render_views
     from models.tracer import Tracer
@@ -73,15 +87,19 @@ def _apply(args: argparse.Namespace) -> int:
     config = RenderConfig.from_dict(section)
     capture = read_capture(args.capture, layers=["mask"])
     gaussians, settings = load_model(args.model)
-    edited, report = apply_edit(gaussians, spec)
+    tracer = Tracer(settings.tracer_config(args.threads), device=args.device)
+    # set_albedo traces the model with the paths this stage renders
+    edited, report = apply_edit(gaussians, spec, trace_fn=tracer.trace, path=config.path(settings.path))
     # the edited model renders like the model it was edited from (same model.yaml, plus the edit's name)
     settings = dataclasses.replace(settings, training={**settings.training, "edit": spec.name})
-    save_model(args.out / "model", edited, settings)
-    tracer = Tracer(settings.tracer_config(args.threads), device=args.device)
+    # model/ and renders/ each complete or absent; stage.json (written last) says both belong to this run
+    (args.out / "stage.json").unlink(missing_ok=True)
+    with staged_folder(args.out / "model") as out:
+        save_model(out, edited, settings)
     tracer.update(edited, rebuild=True)
     views = capture.split("test") or capture.split("train")
-    timings = render_views(tracer, views, edited, config, settings.path, args.out / "renders" / "test",
-                           desc="render edit")
+    with staged_folder(args.out / "renders") as out:
+        timings = render_views(tracer, views, edited, config, settings.path, out / "test", desc="render edit")
     write_stage_json(args.out, "edit", {"edit": raw, "render": section}, time.perf_counter() - start,
                      device=args.device, extra={"edit": spec.name, "ops": report, "render_spp": config.spp,
                                                 "seconds_per_view": timings, "model": settings.to_dict()})
@@ -91,9 +109,10 @@ def _apply(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from models.capture import read_capture
     from models.metrics import evaluate_edit
 
-    layers = ["diffuse", "specular", "depth", "mask"]
+    layers = ["diffuse", "specular", "emission", "depth", "mask"]  # final = diffuse + specular + emission
     capture = read_capture(args.capture, layers=layers)
     truth = read_capture(args.truth, layers=layers)
     metrics = evaluate_edit(capture, truth, args.renders, args.baseline_renders)
@@ -137,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", required=True, type=Path, help="metrics.json path")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    from models.capture import CaptureError  # after parsing: --help answers without torch / Warp
+
     try:
         return {"apply": _apply, "evaluate": _evaluate}[args.command](args)
     except (CaptureError, ConfigError, FileNotFoundError, ValueError) as e:
@@ -145,4 +166,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_stage(main))

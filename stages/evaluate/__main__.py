@@ -7,10 +7,6 @@ import json
 import sys
 from pathlib import Path
 
-from models.capture import CaptureError, read_capture
-from models.metrics import evaluate_renders
-from models.rendering import measure_fps
-from models.trained import GAUSSIANS_FILE, read_settings
 from stages.cli import single_threaded_torch
 
 
@@ -18,7 +14,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m stages.evaluate",
         description="PSNR and SSIM per layer (diffuse, specular, final) of <renders>/test/*.exr against the "
-        "capture's test views, linear and tonemapped (clamp to [0, 1] + sRGB curve, as the PNGs); adds training "
+        "capture's test views (ground truth final = diffuse + specular + emission, diffuse = diffuse + emission, "
+        "when the capture has an emission layer): linear with the ground truth's peak (peak_<layer>), mu-law "
+        "tonemapped (the headline), and, blind above 1, clamped and clamp + sRGB curve (as the PNGs); SSIM as 3DGS; "
+        "'saturated' lists scores that stopped measuring (models/metrics/scoring.py DEFINITIONS). Adds training "
         "time, Gaussian count, peak memory and the training decisions from the model's stage.json, render time "
         "from the renders' stage.json, and render FPS at 1 spp (no denoiser). Writes <out> (metrics.json).",
     )
@@ -34,12 +33,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config-json", default="{}", help="the 'evaluate' section as JSON: {regions: {name: {min, max}}}")
     args = p.parse_args(argv)
     single_threaded_torch()
+    from models.capture import CaptureError, read_capture  # after parsing: --help answers without torch / Warp
+    from models.metrics import evaluate_renders
+    from models.rendering import measure_fps
+    from models.trained import GAUSSIANS_FILE, read_settings
+
     try:
         section = json.loads(args.config_json)
         unknown = set(section) - {"regions"}
         if unknown:
             raise ValueError(f"unknown evaluate option(s) {sorted(unknown)}; known: ['regions']")
-        capture = read_capture(args.capture, layers=["diffuse", "specular", "depth", "mask"])
+        capture = read_capture(args.capture, layers=["diffuse", "specular", "emission", "depth", "mask"])
+        if not capture.split("test"):
+            raise CaptureError(f"{args.capture}: the capture has no test views, nothing to score the renders "
+                               "against; mark some frames \"split\": \"test\" in its transforms.json (photos: "
+                               "poses.test_every > 0; synthetic: synth.cameras.test.count > 0)")
+        check_renders(args.renders, args.model)
         metrics = evaluate_renders(capture, args.renders / "test", section.get("regions"))
     except (CaptureError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -56,11 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     if (args.renders / "stage.json").is_file():
         render_stage = json.loads((args.renders / "stage.json").read_text())
     if args.model and (args.model / GAUSSIANS_FILE).is_file():
-        metrics["model"] = read_settings(args.model).to_dict()
-        if args.fps_repeats > 0:  # at the render stage's path length (its override, else the model's)
-            length = render_stage.get("path", {}).get("max_path_length")
-            metrics.update(measure_fps(args.model, capture.split("test")[0].camera, length, args.device,
-                                       args.threads, args.fps_repeats))
+        try:
+            metrics["model"] = read_settings(args.model).to_dict()
+            if args.fps_repeats > 0:  # at the render stage's path length (its override, else the model's)
+                length = render_stage.get("path", {}).get("max_path_length")
+                metrics.update(measure_fps(args.model, capture.split("test")[0].camera, length, args.device,
+                                           args.threads, args.fps_repeats))
+        except (FileNotFoundError, ValueError) as e:  # a bad model.yaml, a truncated gaussians.ply
+            print(f"error: {e}", file=sys.stderr)
+            return 1
     if render_stage:
         metrics["render_seconds_per_view"] = render_stage.get("seconds_per_view", {})
         metrics["render_spp"] = render_stage.get("config", {}).get("spp")
@@ -69,7 +82,26 @@ def main(argv: list[str] | None = None) -> int:
     tmp.write_text(json.dumps(metrics, indent=1))
     tmp.replace(args.out)
     print(json.dumps(metrics["mean"], indent=1))
+    for s in metrics["saturated"]:
+        print(f"warning: saturated score, view {s['view']} {s['layer']}: {'; '.join(s['reasons'])}", file=sys.stderr)
     return 0
+
+
+def check_renders(renders: Path, model: Path | None) -> None:
+    """Refuse renders that are not one finished run of the render stage (its stage.json is written last) or
+    that were made from another model than ``model``."""
+    from models.trained import GAUSSIANS_FILE, read_settings
+
+    stage = renders / "stage.json"
+    if not stage.is_file():
+        raise ValueError(f"{renders}: no stage.json, so not a finished render (interrupted, or not written by "
+                         "stages.render); render again")
+    made_from = json.loads(stage.read_text()).get("model", {}).get("training")
+    if model is not None and (model / GAUSSIANS_FILE).is_file() and made_from is not None:
+        current = read_settings(model).training
+        if made_from != current:
+            raise ValueError(f"{renders} was rendered from another model than {model} (model.yaml training "
+                             f"{made_from} vs {current}); render again")
 
 
 if __name__ == "__main__":

@@ -8,11 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-from models.capture import CaptureError, read_capture
-from models.gaussians import write_ply
-from models.initialisation import InitConfig, initialise
 from stages.cli import add_config_args, load_section
 from stages.config import ConfigError
+from stages.output import run_stage, staged_folder
 from stages.provenance import write_stage_json
 
 log = logging.getLogger("stages.init")
@@ -31,23 +29,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, type=Path, help="output folder; gets points.ply")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    from models.capture import CaptureError, read_capture  # after parsing: --help answers without torch
+    from models.gaussians import write_ply
+    from models.initialisation import InitConfig, initialise
+
     try:
         section = load_section(args, "init")
         config = InitConfig.from_dict(section)
         start = time.perf_counter()
-        capture = read_capture(args.capture, layers=["depth", "diffuse", "mask"])
+        capture = read_capture(args.capture, layers=["depth", "diffuse", "emission", "mask"])
         gaussians, summary = initialise(capture, args.capture, config)
     except (CaptureError, ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_ply(args.out / "points.ply", gaussians)
     log.info("%s", summary.get("decision"))
     log.info("init: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in summary.items() if k != "decision"))
-    write_stage_json(args.out, "init", section, time.perf_counter() - start, extra={"summary": summary})
+    with staged_folder(args.out) as out:
+        write_ply(out / "points.ply", gaussians)
+        write_stage_json(out, "init", section, time.perf_counter() - start, extra={"summary": summary})
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_stage(main))

@@ -8,10 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-from models.capture import CaptureError
-from models.poses.config import PosesConfig
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
+from stages.output import run_stage, staged_folder
 from stages.provenance import write_stage_json
 
 log = logging.getLogger("stages.poses")
@@ -37,7 +36,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     single_threaded_torch()
+    from models.capture import CaptureError  # after parsing: --help answers at once
     from models.poses import run_poses
+    from models.poses.config import PosesConfig
 
     start = time.perf_counter()
     try:
@@ -48,7 +49,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("no photos given: pass --images DIR or set poses.images in the scene config")
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        capture = run_poses(images, args.work, args.out, config, threads=args.threads, progress=not args.no_progress)
+        with staged_folder(args.out) as out:  # the capture complete or absent
+            capture = run_poses(images, args.work, out, config, threads=args.threads,
+                                progress=not args.no_progress)
     except (CaptureError, ConfigError, ValueError) as e:  # PosesError is a ValueError
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -60,4 +63,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_stage(main))

@@ -8,15 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-from tqdm import tqdm
-
-from models.capture import CaptureError, read_capture
-from models.rendering import RenderConfig, camera_path, render_view, render_views, write_layers
-from models.tracer import Tracer
-from models.trained import load_model
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
+from stages.output import run_stage, staged_folder
 from stages.provenance import write_stage_json
 
 log = logging.getLogger("stages.render")
@@ -39,6 +33,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     single_threaded_torch()
+    import torch  # after parsing: --help answers without loading torch / Warp
+    from tqdm import tqdm
+
+    from models.capture import CaptureError, read_capture
+    from models.rendering import RenderConfig, camera_path, render_view, render_views, write_layers
+    from models.tracer import Tracer
+    from models.trained import load_model
+
     try:
         section = load_section(args, "render")
         config = RenderConfig.from_dict(section)
@@ -55,25 +57,30 @@ def main(argv: list[str] | None = None) -> int:
     warnings = []
     if config.spp == 0 and path.max_path_length > 1:
         warnings.append("render.spp 0: no reflection samples, the specular layer is black and final = diffuse")
+    if not capture.split("test"):
+        warnings.append(f"{args.capture} has no test views: its training views are rendered into test/ "
+                        "(the evaluate stage needs test views to score)")
     for w in warnings:
         log.warning(w)
     generator = torch.Generator().manual_seed(config.seed)
     start = time.perf_counter()
     test_views = capture.split("test") or capture.split("train")
-    timings = render_views(tracer, test_views, gaussians, config, settings.path, args.out / "test", generator,
-                           desc="render test")
-    frames = []
-    for i, cam in enumerate(tqdm(camera_path([v.camera for v in test_views], config.path_views),
-                                 desc="render path", unit="view")):
-        img = render_view(tracer.trace, cam, gaussians, config, generator, settings.path)
-        write_layers(args.out / "path", f"path_{i:03d}", img)
-        frames.append(args.out / "path" / "png" / f"path_{i:03d}_final.png")
-    video = _video(frames, args.out / "path") if config.video and frames else None
-    write_stage_json(args.out, "render", section, time.perf_counter() - start, device=args.device,
-                     extra={"seconds_per_view": timings, "video": str(video) if video else None,
-                            "warnings": warnings,
-                            "model": settings.to_dict(), "path": {"max_path_length": path.max_path_length,
-                                                                  "sampler": path.sampler}})
+    with staged_folder(args.out) as out:  # complete or absent: a killed run leaves no mix of old and new files
+        timings = render_views(tracer, test_views, gaussians, config, settings.path, out / "test", generator,
+                               desc="render test")
+        frames = []
+        for i, cam in enumerate(tqdm(camera_path([v.camera for v in test_views], config.path_views),
+                                     desc="render path", unit="view")):
+            img = render_view(tracer.trace, cam, gaussians, config, generator, settings.path)
+            write_layers(out / "path", f"path_{i:03d}", img)
+            frames.append(out / "path" / "png" / f"path_{i:03d}_final.png")
+        video = _video(frames, out / "path") if config.video and frames else None
+        write_stage_json(out, "render", section, time.perf_counter() - start, device=args.device,
+                         extra={"seconds_per_view": timings,
+                                "video": str(args.out / video.relative_to(out)) if video else None,
+                                "warnings": warnings,
+                                "model": settings.to_dict(), "path": {"max_path_length": path.max_path_length,
+                                                                      "sampler": path.sampler}})
     return 0
 
 
@@ -92,4 +99,4 @@ def _video(frames: list[Path], out_dir: Path) -> Path | None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_stage(main))

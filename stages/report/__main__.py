@@ -10,10 +10,6 @@ from pathlib import Path
 
 from stages.config import ConfigError, load_config
 
-from .batch import batch_report
-from .scene import scene_report
-from .sweep import sweep_report
-
 
 def _write(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -40,14 +36,24 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--out", type=Path, help="HTML path (default <results>/report.html)")
     s.add_argument("--config-json", help="the scene's merged config as JSON (what Snakemake passes); "
                    "default: configs/scenes/<folder name>.yaml merged with defaults and presets")
+    s.add_argument("--command", dest="run_command", help="the command that ran the workflow, stated in the "
+                   "report's header (Snakemake passes its own command line); default: the snakemake command for the "
+                   "config's scene and presets")
     b = sub.add_parser("batch", help="one table across scenes")
     b.add_argument("results", type=Path, nargs="+", help="results/<scene> folders")
     b.add_argument("--out", type=Path, required=True, help="HTML path")
     b.add_argument("--title", default="batch report")
+    b.add_argument("--command", dest="run_command", help="the command that ran the workflow, stated in the report's header")
+    b.add_argument("--presets-json", default="{}", help="scene -> its presets, as JSON (what Snakemake passes); "
+                   "shown in the table of each scene")
     w = sub.add_parser("sweep", help="the speed / accuracy sweep's sweep.json as HTML")
     w.add_argument("sweep", type=Path, help="sweep.json written by python -m stages.benchmark sweep")
     w.add_argument("--out", type=Path, help="HTML path (default: report.html beside sweep.json)")
     args = p.parse_args(argv)
+    from .batch import batch_report  # after parsing: --help answers without torch / Warp
+    from .scene import scene_report
+    from .sweep import sweep_report
+
     try:
         if args.command == "scene":
             if not args.results.is_dir():
@@ -60,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
                 except ConfigError:
                     config = {"scene": args.results.name}
             out = args.out or args.results / "report.html"
-            _write(out, scene_report(args.results, config))
+            _write(out, scene_report(args.results, config, command=args.run_command))
         elif args.command == "sweep":
             if not args.sweep.is_file():
                 raise FileNotFoundError(f"{args.sweep} does not exist (run python -m stages.benchmark sweep first)")
@@ -72,7 +78,10 @@ def main(argv: list[str] | None = None) -> int:
             if missing:
                 raise FileNotFoundError(f"no metrics.json in {', '.join(missing)} (run the scene(s) first)")
             out = args.out
-            _write(out, batch_report(args.results, out, args.title))
+            presets = json.loads(args.presets_json)
+            if not isinstance(presets, dict):
+                raise ValueError(f"--presets-json must map scene names to preset lists, got {args.presets_json!r}")
+            _write(out, batch_report(args.results, out, args.title, command=args.run_command, presets=presets))
     except (FileNotFoundError, ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -25,23 +25,39 @@ def _grouped_table(scenes: list[str], rows: list[tuple[str, list]]) -> str:
     return f"<table>{head1}{head2}{body}</table>"
 
 
-def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report") -> str:
-    """HTML of the batch report; ``out`` is where it will be written (links to scene reports are relative)."""
+def _presets_cell(presets: list[str] | None) -> str:
+    """A scene's presets; "–" when not known (a batch report made by hand without --presets-json)."""
+    return "–" if presets is None else esc(", ".join(presets) or "none")
+
+
+def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report", command: str | None = None,
+                 presets: dict[str, list[str]] | None = None) -> str:
+    """HTML of the batch report; ``out`` is where it will be written (links to scene reports are relative);
+    ``command``: the command that ran the workflow; ``presets``: scene name -> the presets it ran with."""
+    presets = presets or {}
     scene_dirs = [Path(d) for d in scene_dirs]
     metrics = {d.name: json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").is_file() else {}
                for d in scene_dirs}
     names = list(metrics)
-    linear = [v for n in names for v in (metrics[n].get("mean", {}).get(f"psnr_{layer}")
-                                         for layer in ("diffuse", "specular", "final"))]
-    tonemapped = [v for n in names for v in (metrics[n].get("mean", {}).get(f"psnr_{layer}_tonemapped")
-                                             for layer in ("diffuse", "specular", "final"))]
+    def row(key: str) -> list:
+        return [metrics[n].get("mean", {}).get(key.format(layer)) for n in names
+                for layer in ("diffuse", "specular", "final")]
+
+    saturated = [n for n in names if metrics[n].get("saturated")]
     parts = [f"<h1>{esc(title)}</h1>",
+             (f"<p class=\"note\">Run with <code>{esc(command)}</code>.</p>" if command else ""),
              "<h2>Table 1: disentanglement (PSNR, dB, test views)</h2>",
-             _grouped_table(names, [("Ours (g.t. inputs), linear", linear),
-                                    ("Ours (g.t. inputs), tonemapped", tonemapped)]),
-             "<p class=\"note\">Linear: radiance clamped to [0, 1]; tonemapped: clamp + sRGB curve. Our scenes are "
-             "rendered by the <code>synth</code> stage with exact buffers (the paper's \"g.t. inputs\" setting). "
-             "LPIPS is not computed: it needs network weights that cannot be fetched here.</p>",
+             _grouped_table(names, [("Ours (g.t. inputs), tonemapped", row("psnr_{}_tonemapped")),
+                                    ("Ours (g.t. inputs), linear", row("psnr_{}")),
+                                    ("Ours (g.t. inputs), sRGB (clamped)", row("psnr_{}_srgb"))]),
+             "<p class=\"note\">Tonemapped (headline): mu-law (mu = 5000) of radiance / the ground truth's peak, no "
+             "clamp; linear: no clamp, PSNR at the ground truth's peak (<code>peak_&lt;layer&gt;</code> in each "
+             "metrics.json); sRGB: clamp to [0, 1] + sRGB curve, as the PNGs (blind above 1). Ground-truth final = "
+             "diffuse + specular + emission, diffuse = diffuse + emission, where a capture has emission. Our scenes "
+             "are rendered by the <code>synth</code> stage with exact buffers (the paper's \"g.t. inputs\" setting). "
+             "LPIPS is not computed: it needs network weights that cannot be fetched here."
+             + (f" <b>Saturated scores</b> (see the scene reports): {esc(', '.join(saturated))}." if saturated else "")
+             + "</p>",
              "<h3>For orientation: the paper's Table 1 (its scenes, GPU schedule)</h3>",
              _grouped_table(list(PAPER_TABLE1), [("Ours (g.t. inputs), paper", [v for t in PAPER_TABLE1.values()
                                                                                    for v in t])])]
@@ -54,10 +70,12 @@ def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report")
         rows.append(f"<tr><td class=\"l\">{link}</td><td>{hms(m.get('train_time_s'))}</td>"
                     f"<td>{fmt(m.get('gaussians'))}</td><td>{fmt(m.get('fps_1spp'))}"
                     f"{' @ %dx%d' % tuple(res) if res else ''}</td><td>{fmt(m.get('fps_primary'))}</td>"
-                    f"<td>{fmt(m.get('train_peak_rss_mib'), 0)}</td><td>{fmt(m.get('render_spp'))}</td></tr>")
+                    f"<td>{fmt(m.get('train_peak_rss_mib'), 0)}</td><td>{fmt(m.get('render_spp'))}</td>"
+                    f"<td class=\"l\">{_presets_cell(presets.get(d.name))}</td></tr>")
     parts += ["<h2>Table 2: training time and cost</h2>",
               "<table><tr><th class=\"l\">scene</th><th>training (h:mm:ss)</th><th>Gaussians</th>"
-              "<th>FPS 1 spp</th><th>FPS primary</th><th>peak RSS (MiB)</th><th>render spp</th></tr>"
+              "<th>FPS 1 spp</th><th>FPS primary</th><th>peak RSS (MiB)</th><th>render spp</th>"
+              "<th class=\"l\">presets</th></tr>"
               + "".join(rows) + "</table>",
               "<p class=\"note\">Paper, Table 2 (its scenes, one desktop GPU): "
               + ", ".join(f"{esc(k)} {v}" for k, v in PAPER_TABLE2.items()) + ".</p>"]

@@ -11,6 +11,7 @@ import numpy as np
 from models.capture import read_capture, read_view_buffers
 from models.capture.layers import GBUFFER as GBUFFER_LAYERS
 from models.capture.layers import SCORED as COLOUR_LAYERS
+from models.metrics import ground_truth
 
 from .figures import error_map, layer_uri, png_uri, training_curves
 from .html import esc, figure, fmt, hms, page, table
@@ -31,16 +32,28 @@ def _jsonl(path: Path) -> list[dict]:
 
 def metrics_tables(metrics: dict) -> str:
     mean = metrics.get("mean", {})
-    rows = []
-    for layer in COLOUR_LAYERS:
-        rows.append([layer, mean.get(f"psnr_{layer}"), mean.get(f"ssim_{layer}", None),
-                     mean.get(f"psnr_{layer}_tonemapped"), mean.get(f"ssim_{layer}_tonemapped")])
-    out = table(["layer", "PSNR linear (dB)", "SSIM linear", "PSNR tonemapped (dB)", "SSIM tonemapped"],
-                [[r[0], *[fmt(v, 2 if i % 2 == 0 else 3) for i, v in enumerate(r[1:])]] for r in rows])
-    out += ("<p class=\"note\">Mean over the test views. Linear: radiance clamped to [0, 1]. Tonemapped: clamp, "
-            "then the sRGB transfer curve (as the PNGs). Ground-truth final = diffuse + specular (light sources "
-            f"seen directly are not part of the reconstruction). LPIPS: {esc(metrics.get('lpips', 'not computed'))}."
-            "</p>")
+    # (header, key with {layer}, digits): the headline (mu-law tonemapped) first, then linear at the stated peak,
+    # then the LDR scores (blind above 1) for comparison with numbers measured on clamped images
+    columns = [("PSNR tonemapped (dB)", "psnr_{}_tonemapped", 2), ("SSIM tonemapped", "ssim_{}_tonemapped", 3),
+               ("PSNR linear (dB)", "psnr_{}", 2), ("peak", "peak_{}", 3), ("SSIM linear", "ssim_{}", 3),
+               ("PSNR clamped (dB)", "psnr_{}_clamped", 2), ("PSNR sRGB (dB)", "psnr_{}_srgb", 2),
+               ("SSIM sRGB", "ssim_{}_srgb", 3)]
+    out = table(["layer", *[c[0] for c in columns]],
+                [[layer, *[fmt(mean.get(key.format(layer)), digits) for _, key, digits in columns]]
+                 for layer in COLOUR_LAYERS])
+    truth = metrics.get("ground_truth") or {"final": "diffuse + specular"}
+    out += ("<p class=\"note\">Mean over the test views. Tonemapped (headline): mu-law, mu = 5000, of radiance "
+            "divided by the view's ground-truth peak (PSNR-mu of HDR imaging), nothing clamped. Linear: no clamp, "
+            "PSNR at that peak (max of the ground-truth layer; column <i>peak</i>, mean over views), SSIM with data "
+            "range = peak. Clamped: radiance clamped to [0, 1], peak 1; sRGB: clamp, then the sRGB curve (as the "
+            "PNGs): both ignore every error above 1. SSIM: " + esc(metrics.get("definitions", {}).get("ssim", "–"))
+            + ". Ground truth: " + ", ".join(f"{esc(k)} = {esc(v)}" for k, v in truth.items())
+            + f". LPIPS: {esc(metrics.get('lpips', 'not computed'))}.</p>")
+    saturated = metrics.get("saturated") or []
+    if saturated:
+        out += ("<p><b>Saturated scores</b> (they no longer measure the error):</p><ul>" + "".join(
+            f"<li>{esc(s['view'])} {esc(s['layer'])}: {esc('; '.join(s['reasons']))}</li>" for s in saturated)
+            + "</ul>")
     regions = sorted({k.split("_psnr_")[0] for k in mean if "_psnr_" in k})
     if regions:
         out += "<h3>Regions</h3>" + table(
@@ -50,8 +63,10 @@ def metrics_tables(metrics: dict) -> str:
     views = metrics.get("views", {})
     if views:
         out += "<h3>Per view</h3>" + table(
-            ["view", *[f"PSNR {layer}" for layer in COLOUR_LAYERS]],
-            [[name, *[row.get(f"psnr_{layer}") for layer in COLOUR_LAYERS]] for name, row in views.items()])
+            ["view", *[f"PSNR {layer} tonemapped" for layer in COLOUR_LAYERS],
+             *[f"PSNR {layer} linear" for layer in COLOUR_LAYERS]],
+            [[name, *[row.get(f"psnr_{layer}_tonemapped") for layer in COLOUR_LAYERS],
+              *[row.get(f"psnr_{layer}") for layer in COLOUR_LAYERS]] for name, row in views.items()])
     return out
 
 
@@ -97,7 +112,8 @@ def what_ran(config: dict, scene_dir: Path) -> str:
 
 
 def view_images(capture_dir: Path, renders: Path, max_views: int = 3) -> str:
-    capture = read_capture(capture_dir, layers=["diffuse", "specular", "normal", "depth", "roughness", "f0"])
+    capture = read_capture(capture_dir, layers=["diffuse", "specular", "emission", "normal", "depth", "roughness",
+                                                "f0"])
     blocks = []
     for view in capture.split("test")[:max_views]:
         exr = renders / "test" / f"{view.name}.exr"
@@ -107,7 +123,7 @@ def view_images(capture_dir: Path, renders: Path, max_views: int = 3) -> str:
         pred["final"] = pred.pop("rgb")
         gt = dict(view.buffers)
         if "diffuse" in gt and "specular" in gt:
-            gt["final"] = gt["diffuse"] + gt["specular"]
+            gt.update(ground_truth(view.buffers))  # diffuse (+ emission), final = + specular, as scored
         cells = ["<div></div><div><b>ground truth</b></div><div><b>ours</b></div><div><b>|error|</b></div>"]
         for layer in (*COLOUR_LAYERS, *GBUFFER_LAYERS):
             if layer not in pred or layer not in gt:
@@ -176,15 +192,26 @@ def edits_section(scene_dir: Path) -> str:
             + table(head, rows) + "".join(blocks))
 
 
-def scene_report(scene_dir: Path, config: dict | None = None) -> str:
-    """The HTML of one scene's report (results/<scene>/ holds capture, model, renders, metrics.json)."""
+def run_line(scene: str, presets: list[str], command: str | None) -> str:
+    """The header's sentence on how the results were made: the workflow's own command line when given, else the
+    command that makes them; and the presets either way."""
+    named = ", ".join(presets) or "none"
+    if command:
+        return f"Run with <code>{esc(command)}</code> (presets: {esc(named)})."
+    preset = f" preset={','.join(presets)}" if presets else ""
+    return f"Made with the presets {esc(named)}: <code>snakemake --cores 2 --config scene={esc(scene)}{esc(preset)}</code>."
+
+
+def scene_report(scene_dir: Path, config: dict | None = None, command: str | None = None) -> str:
+    """The HTML of one scene's report (results/<scene>/ holds capture, model, renders, metrics.json); ``command``:
+    the command that ran the workflow (default: the snakemake command for the config's scene and presets)."""
     scene_dir = Path(scene_dir)
     config = config or {}
     name = config.get("scene", scene_dir.name)
     metrics = _json(scene_dir / "metrics.json")
     model = _json(scene_dir / "model" / "stage.json")
     parts = [f"<h1>{esc(name)}</h1>",
-             f"<p class=\"note\">Run with <code>snakemake --cores 2 --config scene={esc(name)}</code>. "
+             f"<p class=\"note\">{run_line(name, config.get('presets', []), command)} "
              f"Results folder <code>{esc(scene_dir)}</code>.</p>"]
     parts.append("<h2>Metrics (test views)</h2>" + (metrics_tables(metrics) if metrics else "<p>No metrics.json.</p>"))
     parts.append("<h2>Cost</h2>" + cost_table(metrics))

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from stages.config import load_config
+from stages.output import run_stage, staged_folder
 
 
 def procedural_main(argv: list[str]) -> int:
@@ -62,12 +63,22 @@ def main(argv: list[str] | None = None) -> int:
                    "not reach are the capture's own, noise included")
     p.add_argument("--name", help="name recorded in capture.yaml (default: the scene; 'edit:<names>' with --edits)")
     p.add_argument("--out", required=True, type=Path, help="capture output directory")
+    p.add_argument("--threads", type=int, help="Mitsuba's (Dr.Jit's) CPU threads (what Snakemake gives the job; "
+                   "default: one per core)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = p.parse_args(argv)
 
     import time
 
     from models.synth import render_capture
+
+    if args.threads is not None:
+        if args.threads < 1:
+            print(f"error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
+            return 2
+        import drjit as dr
+
+        dr.set_thread_count(args.threads)
 
     t0 = time.perf_counter()
     try:
@@ -101,20 +112,21 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--edits-json: invalid JSON ({e})") from None
         if args.edits and args.name is None:
             name = f"edit:{','.join(args.edits)}"
-        capture = render_capture(synth_cfg, args.out, edits=edits or None, progress=not args.no_progress,
-                                 scene_name=args.name or name, splits=tuple(args.splits) if args.splits else None)
+        from stages.provenance import write_stage_json
+
+        with staged_folder(args.out) as out:  # the capture complete or absent
+            capture = render_capture(synth_cfg, out, edits=edits or None, progress=not args.no_progress,
+                                     scene_name=args.name or name, splits=tuple(args.splits) if args.splits else None)
+            extra = capture.meta.extra
+            write_stage_json(out, "synth", {"synth": synth_cfg, "edits": edits}, time.perf_counter() - t0,
+                             extra={"seconds_per_view": extra["seconds_per_view"], "spp": extra["spp"]})
     except ValueError as e:  # includes ConfigError and CaptureError subclasses of ValueError
         print(f"error: {e}", file=sys.stderr)
         return 2
-    extra = capture.meta.extra
-    from stages.provenance import write_stage_json
-
-    write_stage_json(args.out, "synth", {"synth": synth_cfg, "edits": edits}, time.perf_counter() - t0,
-                     extra={"seconds_per_view": extra["seconds_per_view"], "spp": extra["spp"]})
     print(f"wrote {len(capture.views)} views to {args.out} ({extra['spp']} spp, "
           f"{extra['mean_seconds_per_view']} s/view, {extra['seconds_total']} s total)")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_stage(main))

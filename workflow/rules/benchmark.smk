@@ -11,6 +11,20 @@ rule benchmark_tracer:
         "{params.py} -m stages.benchmark tracer --out {output} 2>&1 | tee {log}"
 
 
+rule benchmark_train_step:
+    """Training-step table (stdout, log) and JSON: ms per step by section (tracer kernels, path sampling, losses,
+    Adam, host overhead) at 64 / 1024 / 4096 rays and whole views; on the CPU, and on CUDA when present."""
+    output:
+        f"{RESULTS}/benchmark/train_step.json",
+    params:
+        py=PY,
+    log:
+        f"{RESULTS}/benchmark/train_step.log",
+    threads: 2
+    shell:
+        "{params.py} -m stages.benchmark train-step --out {output} 2>&1 | tee {log}"
+
+
 rule sweep:
     """Speed/accuracy sweep of one scene: table (log) and sweep.json (target: sweep_all)."""
     input:
@@ -25,11 +39,13 @@ rule sweep:
         device=lambda wc: scene_config(wc.scene)["device"],
     log:
         f"{RESULTS}/sweep/{{scene}}/sweep.log",
-    threads: 2
+    resources:
+        gpu=scene_gpus,
     shell:
+        "{params.py} -m stages.progress --label 'sweep {wildcards}' --log {log} -- "
         "{params.py} -m stages.benchmark sweep --capture {input.capture} --scene {wildcards.scene} "
         "--config-json {params.cfg:q} --iterations {params.iterations} {params.quick} --device {params.device} "
-        "--out $(dirname {output.json}) > {log} 2>&1"
+        "--out $(dirname {output.json})"
 
 
 rule sweep_report:
@@ -43,7 +59,8 @@ rule sweep_report:
     log:
         f"{RESULTS}/sweep/{{scene}}/report.log",
     shell:
-        "{params.py} -m stages.report sweep {input} --out {output} > {log} 2>&1"
+        "{params.py} -m stages.progress --label 'sweep_report {wildcards}' --log {log} -- "
+        "{params.py} -m stages.report sweep {input} --out {output}"
 
 
 rule sweep_all:

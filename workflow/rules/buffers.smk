@@ -16,9 +16,10 @@ rule buffernet_rooms:
     log:
         f"{RESULTS}/buffernet/logs/rooms_{{split}}.log",
     shell:
+        "{params.py} -m stages.progress --label 'buffernet_rooms {wildcards}' --log {log} -- "
         "{params.py} -m stages.synth procedural --count {params.r[count]} --seed {params.r[seed]} --out {output} "
         "--resolution {params.common[resolution][0]} {params.common[resolution][1]} --views {params.common[views]} "
-        "--spp {params.common[spp]} {params.denoise} --no-progress > {log} 2>&1"
+        "--spp {params.common[spp]} {params.denoise} --no-progress"
 
 
 rule buffernet_train:
@@ -34,10 +35,10 @@ rule buffernet_train:
             else f"--{k.replace('_', '-')} {v}" for k, v in buffernet_section("train").items()),
     log:
         f"{RESULTS}/buffernet/logs/train_{{name}}.log",
-    threads: 2
     shell:
+        "{params.py} -m stages.progress --label 'buffernet_train {wildcards}' --log {log} -- "
         "{params.py} -m stages.buffernet_train train --data captures:{input.rooms} --out $(dirname {output}) "
-        "{params.args} --no-progress > {log} 2>&1"
+        "{params.args} --no-progress"
 
 
 rule buffernet_evaluate:
@@ -52,8 +53,9 @@ rule buffernet_evaluate:
     log:
         f"{RESULTS}/buffernet/logs/evaluate_{{name}}.log",
     shell:
+        "{params.py} -m stages.progress --label 'buffernet_evaluate {wildcards}' --log {log} -- "
         "{params.py} -m stages.buffernet_train evaluate --model {input.model} --data captures:{input.rooms} "
-        "--out {output} --no-progress > {log} 2>&1"
+        "--out {output} --no-progress"
 
 
 rule buffernet:
@@ -75,6 +77,9 @@ rule buffers:
         device=lambda wc: scene_config(wc.scene)["device"],
     log:
         f"{RESULTS}/{{scene}}/logs/buffers.log",
+    resources:
+        gpu=scene_gpus,
     shell:
+        "{params.py} -m stages.progress --label 'buffers {wildcards}' --log {log} -- "
         "{params.py} -m stages.buffers --config-json {params.cfg:q} --capture {input.capture} --model {input.model} "
-        "--out {output} --device {params.device} --no-progress > {log} 2>&1"
+        "--out {output} --device {params.device} --no-progress"

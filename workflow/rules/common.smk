@@ -4,6 +4,7 @@ import functools
 import json
 import os
 import re
+import shlex
 import sys
 
 from snakemake.utils import min_version
@@ -18,6 +19,10 @@ wildcard_constraints:
     scene="[A-Za-z0-9_-]+",
 
 PY = sys.executable  # the interpreter running Snakemake runs the stages too
+# the command line that started the workflow, stated in the reports' headers (rules pass "$ER_WORKFLOW_COMMAND":
+# the environment, not a param, so that another invocation does not rerun a report); set once, by the first
+# Snakemake process: the jobs a cluster executor starts inherit it
+os.environ.setdefault("ER_WORKFLOW_COMMAND", shlex.join(["snakemake", *sys.argv[1:]]))
 
 
 @functools.cache
@@ -65,11 +70,23 @@ BATCH = str(config["batch"]) if config.get("batch") else ("scenes" if len(SCENES
 def scenes_of_kind(kind):
     """Wildcard regex of the scenes of one kind (the merged config for the scenes of this run, the scene file
     for the others): rules writing the same output (synth, poses -> capture) never compete for a scene."""
+    names = [s for s in known("scenes") if _scene_kind(s) == kind]
+    return "|".join(re.escape(n) for n in names) or "(?!)"
+
+
+@functools.cache
+def _scene_kind(scene):
+    """The kind of a scene; None, with one warning, for another scene's file that does not read (a broken scene
+    file must not stop the others: it fails, named, when it is run)."""
     from stages.config import read_yaml
 
-    names = [s for s in known("scenes")
-             if (scene_config(s) if s in SCENES else read_yaml(CONFIGS / "scenes" / f"{s}.yaml")).get("kind") == kind]
-    return "|".join(re.escape(n) for n in names) or "(?!)"
+    if scene in SCENES:
+        return scene_config(scene).get("kind")
+    try:
+        return read_yaml(CONFIGS / "scenes" / f"{scene}.yaml").get("kind")
+    except ConfigError as error:
+        print(f"warning: scene {scene!r} skipped: {error}", file=sys.stderr)
+        return None
 
 
 def _check_photos(scene):
@@ -89,6 +106,12 @@ def _check_photos(scene):
 
 for _scene in SCENES:
     _check_photos(_scene)
+
+
+def scene_gpus(wildcards):
+    """Resource ``gpu`` of a job of one scene: 1 when the scene runs on CUDA (config device), else 0. Locally
+    ``--resources gpu=1`` then runs one GPU job at a time; the slurm executor asks for that many GPUs."""
+    return int(scene_config(wildcards.scene)["device"] == "cuda")
 
 
 def section(name):
@@ -118,6 +141,16 @@ def edit_targets(scene):
             for name, edit in (cfg.get("edits") or {}).items()]
 
 
+def scene_edit(scene, name):
+    """The named edit ``name`` of ``scene`` (a target results/<scene>/edits/<name>/...); an error listing the
+    scene's edits when it has none of that name."""
+    edits = scene_config(scene).get("edits") or {}
+    if name not in edits:
+        raise ConfigError(f"scene {scene!r} has no edit {name!r} (target {RESULTS}/{scene}/edits/{name}/); "
+                          f"known edits: {', '.join(edits) or 'none'} (edits: of configs/scenes/{scene}.yaml)")
+    return edits[name]
+
+
 def report_inputs(wildcards):
     """What a scene's report shows: the stages that ran for it (its named edits when edits_in_all is on)."""
     base = f"{RESULTS}/{wildcards.scene}"
@@ -144,6 +177,15 @@ def buffernet_model(scene):
     from models.buffernet.fill import network_path
 
     return str(network_path(str(scene_config(scene)["buffers"]["model"]), RESULTS))
+
+
+def print_reports():
+    """At the end of a successful run: where to look (the batch report, else each scene's report, when written)."""
+    batch = f"{RESULTS}/batch_{BATCH}.html" if BATCH else None
+    reports = [batch] if batch and os.path.isfile(batch) else \
+        [f"{RESULTS}/{s}/report.html" for s in SCENES if os.path.isfile(f"{RESULTS}/{s}/report.html")]
+    for path in reports:
+        print(f"open {path}", file=sys.stderr)
 
 
 def buffernet_section(key):

@@ -30,16 +30,18 @@ rule edit:
         edit="[A-Za-z0-9_-]+",
     params:
         py=PY,
-        edit=lambda wc: json.dumps(scene_config(wc.scene)["edits"][wc.edit], sort_keys=True),
+        edit=lambda wc: json.dumps(scene_edit(wc.scene, wc.edit), sort_keys=True),
         cfg=section("render"),
         device=lambda wc: scene_config(wc.scene)["device"],
     log:
         f"{RESULTS}/{{scene}}/logs/edit_{{edit}}.log",
-    threads: 2
+    resources:
+        gpu=scene_gpus,
     shell:
+        "{params.py} -m stages.progress --label 'edit {wildcards}' --log {log} -- "
         "{params.py} -m stages.edit apply --edit {wildcards.edit} --edit-json {params.edit:q} "
         "--config-json {params.cfg:q} --model $(dirname {input.model}) --capture {input.capture} "
-        "--out $(dirname {output.renders}) --device {params.device} > {log} 2>&1"
+        "--out $(dirname {output.renders}) --device {params.device} --threads {threads}"
 
 
 rule edit_truth:
@@ -52,14 +54,15 @@ rule edit_truth:
         edit="[A-Za-z0-9_-]+",
     params:
         py=PY,
-        ground_truth=lambda wc: json.dumps(scene_config(wc.scene)["edits"][wc.edit].get("ground_truth") or [],
+        ground_truth=lambda wc: json.dumps(scene_edit(wc.scene, wc.edit).get("ground_truth") or [],
                                            sort_keys=True),
         synth=section("synth"),
     log:
         f"{RESULTS}/{{scene}}/logs/edit_truth_{{edit}}.log",
     shell:
+        "{params.py} -m stages.progress --label 'edit_truth {wildcards}' --log {log} -- "
         "{params.py} -m stages.synth --config-json {params.synth:q} --edits-json {params.ground_truth:q} "
-        "--splits test --name edit:{wildcards.edit} --no-progress --out {output} > {log} 2>&1"
+        "--splits test --name edit:{wildcards.edit} --no-progress --threads {threads} --out {output}"
 
 
 rule edit_metrics:
@@ -80,6 +83,7 @@ rule edit_metrics:
     log:
         f"{RESULTS}/{{scene}}/logs/edit_metrics_{{edit}}.log",
     shell:
+        "{params.py} -m stages.progress --label 'edit_metrics {wildcards}' --log {log} -- "
         "{params.py} -m stages.edit evaluate --edit {wildcards.edit} --capture {input.capture} "
         "--truth {input.truth} --renders {input.renders}/test --baseline-renders {input.baseline}/test "
-        "--out {output} > {log} 2>&1"
+        "--out {output}"

@@ -10,4 +10,5 @@ rule init:
     log:
         f"{RESULTS}/{{scene}}/logs/init.log",
     shell:
-        "{params.py} -m stages.init --config-json {params.cfg:q} --capture {input.capture} --out $(dirname {output}) > {log} 2>&1"
+        "{params.py} -m stages.progress --label 'init {wildcards}' --log {log} -- "
+        "{params.py} -m stages.init --config-json {params.cfg:q} --capture {input.capture} --out $(dirname {output})"

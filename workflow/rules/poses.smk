@@ -13,7 +13,7 @@ rule poses:
         cfg=section("poses"),
     log:
         f"{RESULTS}/{{scene}}/logs/poses.log",
-    threads: 2
     shell:
+        "{params.py} -m stages.progress --label 'poses {wildcards}' --log {log} -- "
         "{params.py} -m stages.poses --config-json {params.cfg:q} --images {input.photos:q} --work {output.work} "
-        "--out {output.capture} --threads {threads} > {log} 2>&1"
+        "--out {output.capture} --threads {threads}"

@@ -10,4 +10,5 @@ rule synth:
     log:
         f"{RESULTS}/{{scene}}/logs/synth.log",
     shell:
-        "{params.py} -m stages.synth --config-json {params.cfg:q} --out {output} > {log} 2>&1"
+        "{params.py} -m stages.progress --label 'synth {wildcards}' --log {log} -- "
+        "{params.py} -m stages.synth --config-json {params.cfg:q} --threads {threads} --out {output}"

@@ -14,7 +14,8 @@ class TrainConfig:
 
     data: list[str] = setting(default_factory=list, doc="sources, each hypersim:DIR, interiorverse:DIR[:split] or "
                               "captures:DIR (a capture, or a folder of captures)")
-    init: str = setting("small", "tiny | small (random weights, SD2 architecture) | a local folder: an SD2 checkpoint "
+    init: str = setting("small", "tiny | small (random weights, SD2 architecture) | sd2 (random weights, SD2's exact "
+                        "sizes) | a local folder: an SD2 checkpoint "
                         "(diffusers layout, conv_in widened) or a saved buffer network")
     out: str = setting("results/buffernet", "output folder: pipeline/, checkpoints/, train_log.jsonl, stage.json")
     iterations: int = setting(20000, "UNet optimiser steps", minimum=1)

@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from models.buffernet import BufferNetPipeline
-from models.buffernet.build import build_pipeline, from_stable_diffusion
+from models.buffernet.build import RANDOM_INITS, build_pipeline, from_stable_diffusion
 from models.buffernet.codec import BUFFERS
 from models.buffernet.datasets import BufferDataset
 
@@ -31,13 +31,13 @@ KL_WEIGHT = 1e-6  # VAE phase: keeps latents near the prior (SD's VAE used a sim
 
 
 def load_initial(init: str, seed: int = 0) -> BufferNetPipeline:
-    """``tiny`` / ``small`` (random weights), a saved buffer network, or a local SD2 folder (widened)."""
-    if init in ("tiny", "small"):
+    """``tiny`` / ``small`` / ``sd2`` (random weights), a saved buffer network, or a local SD2 folder (widened)."""
+    if init in RANDOM_INITS:
         return build_pipeline(init, seed=seed)
     path = Path(init)
     index = path / "model_index.json"
     if not index.is_file():
-        raise FileNotFoundError(f"init {init!r}: not 'tiny'/'small' and no model_index.json in {path} "
+        raise FileNotFoundError(f"init {init!r}: not {'/'.join(RANDOM_INITS)} and no model_index.json in {path} "
                                 "(give a local stable-diffusion-2 folder or a saved buffer network)")
     if json.loads(index.read_text()).get("_class_name") == "BufferNetPipeline":
         return BufferNetPipeline.from_pretrained(path)
@@ -89,8 +89,8 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True) -> Path:
     pipe.freeze()
     dataset = BufferDataset(make_readers(cfg.data), cfg.size)
     train_vae = cfg.vae_steps > 0
-    if train_vae and cfg.init not in ("tiny", "small"):
-        raise ValueError("vae_steps > 0 trains the VAE, which only a random-weight model (init tiny/small) needs")
+    if train_vae and cfg.init not in RANDOM_INITS:
+        raise ValueError("vae_steps > 0 trains the VAE, which only a random-weight model (init tiny/small/sd2) needs")
     prompts = {b: e for b, e in zip(BUFFERS, pipe.encode_prompts(BUFFERS))}
     if cfg.gradient_checkpointing:
         pipe.unet.enable_gradient_checkpointing()
