@@ -100,8 +100,9 @@ class Trainer:
                 weights[layer] = w
         if "diffuse" not in weights:
             raise ValueError("reconstruction needs the diffuse buffer (loss weight > 0 and the layer in the capture)")
-        emitting = [v for v in self.rays.views if "emission" in v.buffers]
-        if emitting:  # build_rayset's diffuse target (models.capture.layers.diffuse_radiance)
+        # build_rayset's diffuse target is diffuse + emission (models.capture.layers.diffuse_radiance)
+        emitting = [v for v in self.rays.views if "emission" in v.buffers and float(v.buffers["emission"].max()) > 0]
+        if emitting:
             peak = max(float(v.buffers["emission"].max()) for v in emitting)
             self.decisions.append(f"loss diffuse: target diffuse + emission (lights seen directly, max {peak:.3g}) "
                                   f"in {len(emitting)} of {len(self.rays.views)} training views")
