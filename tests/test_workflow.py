@@ -141,3 +141,23 @@ def test_slurm_profile_dry_run(tmp_path):
     for rule in ("synth", "init", "reconstruct", "render", "evaluate", "report"):
         assert f"rule {rule}:" in proc.stdout, rule
     assert "runtime=720" in proc.stdout and "mem_mb=16000" in proc.stdout
+
+
+def test_own_capture_with_buffers(tmp_path, tiny_demo):
+    """kind: capture (configs/scenes/my_buffers.yaml): without its folder, one line saying where it goes; with
+    it, the workflow plans init -> reconstruct -> render -> evaluate -> report and nothing that makes a capture."""
+    import shutil
+
+    results = tmp_path / "results"
+    args = ("-n", "--config", "scene=my_buffers", f"results={results}")
+    proc = snakemake(tmp_path, *args)
+    assert proc.returncode != 0
+    assert (f"error: scene 'my_buffers' is kind: capture, so its capture must already exist: put the folder "
+            f"(transforms.json + images/, the format of README 'The capture format') at {results}/my_buffers/capture/"
+            ) in proc.stderr + proc.stdout
+    shutil.copytree(tiny_demo[1] / "demo" / "capture", results / "my_buffers" / "capture")
+    proc = snakemake(tmp_path, *args)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    jobs = proc.stdout.split("Job stats:")[1].split("total")[0]
+    assert all(rule in jobs for rule in ("init", "reconstruct", "render", "evaluate", "report"))
+    assert "synth" not in jobs and "poses" not in jobs

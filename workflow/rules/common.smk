@@ -104,8 +104,20 @@ def _check_photos(scene):
         sys.exit(f"error: scene {scene!r}: {message}")
 
 
+def _check_capture(scene):
+    """A ``kind: capture`` scene (a capture folder with its buffers, written by another tool) must be in place:
+    nothing in the workflow makes it."""
+    if scene_config(scene)["kind"] != "capture":
+        return
+    folder = f"{RESULTS}/{scene}/capture"
+    if not os.path.isfile(f"{folder}/transforms.json"):
+        sys.exit(f"error: scene {scene!r} is kind: capture, so its capture must already exist: put the folder "
+                 f"(transforms.json + images/, the format of README 'The capture format') at {folder}/")
+
+
 for _scene in SCENES:
     _check_photos(_scene)
+    _check_capture(_scene)
 
 
 def scene_gpus(wildcards):
