@@ -161,3 +161,25 @@ def test_own_capture_with_buffers(tmp_path, tiny_demo):
     jobs = proc.stdout.split("Job stats:")[1].split("total")[0]
     assert all(rule in jobs for rule in ("init", "reconstruct", "render", "evaluate", "report"))
     assert "synth" not in jobs and "poses" not in jobs
+
+
+def test_edit_scored_against_a_truth_folder(tmp_path):
+    """An edit's `truth: <capture folder>` replaces the synth re-render as its ground truth (the way to score
+    edits of a capture made elsewhere); a truth that is not a capture folder is named."""
+    import yaml
+
+    truth = tmp_path / "mytruth"
+    config = {"scene": "demo", "preset": "ci", "results": str(tmp_path / "results"),
+              "edits": {"mine": {"select": {"box": {"min": [0, 0, 0], "max": [1, 1, 1]}},
+                                 "ops": [{"op": "set_roughness", "value": 0.5}], "truth": str(truth)}}}
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(config))
+    target = str(tmp_path / "results" / "demo" / "edits" / "mine" / "metrics.json")
+    proc = snakemake(tmp_path, target, "-n", "--configfile", str(tmp_path / "cfg.yaml"))
+    assert proc.returncode != 0
+    assert f"edit 'mine': truth '{truth}' is not a capture folder (no transforms.json)" in proc.stdout + proc.stderr
+    truth.mkdir()
+    (truth / "transforms.json").write_text("{}")
+    proc = snakemake(tmp_path, target, "-n", "--configfile", str(tmp_path / "cfg.yaml"))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    jobs = proc.stdout.split("Job stats:")[1].split("total")[0]
+    assert "edit_metrics" in jobs and "edit_truth" not in jobs

@@ -55,7 +55,7 @@ OPS: dict[str, tuple[frozenset, frozenset]] = {
     "set_albedo": (frozenset({"value"}), frozenset({"samples"})),
 }
 ALBEDO_SAMPLES = 64  # set_albedo: default cosine-distributed rays per Gaussian
-EDIT_KEYS = ("description", "select", "ops", "ground_truth")
+EDIT_KEYS = ("description", "select", "ops", "ground_truth", "truth")
 
 
 class EditSpecError(ValueError):
@@ -105,6 +105,7 @@ class EditSpec:
     select: Selection | None = None  # default selection, evaluated once on the input model
     description: str = ""
     ground_truth: tuple[dict, ...] | None = None  # synth edit list (validated by models/synth/edits.py)
+    truth: str | None = None  # a capture folder of the edited scene's test views the user already has
 
 
 # --------------------------------------------------------------------------------------- helpers
@@ -279,7 +280,10 @@ def parse_edit(name: str, d: Any) -> EditSpec:
     desc = d.get("description", "")
     if not isinstance(desc, str):
         raise _fail(f"{where}.description", f"must be a string, got {desc!r}")
-    return EditSpec(name=name, ops=parsed, select=select, description=desc, ground_truth=gt)
+    truth = d.get("truth")
+    if truth is not None and (not isinstance(truth, str) or not truth):
+        raise _fail(f"{where}.truth", f"must be the path of a capture folder, got {truth!r}")
+    return EditSpec(name=name, ops=parsed, select=select, description=desc, ground_truth=gt, truth=truth)
 
 
 def parse_edits(d: Any, where: str = "edits") -> dict[str, EditSpec]:

@@ -149,8 +149,21 @@ def edit_targets(scene):
     """Per named edit of the scene: metrics.json where a ground truth can be rendered, else the edited renders."""
     cfg = scene_config(scene)
     return [f"{RESULTS}/{scene}/edits/{name}/"
-            + ("metrics.json" if cfg["kind"] == "synthetic" and edit.get("ground_truth") else "renders")
+            + ("metrics.json" if edit.get("truth") or (cfg["kind"] == "synthetic" and edit.get("ground_truth"))
+               else "renders")
             for name, edit in (cfg.get("edits") or {}).items()]
+
+
+def edit_truth(wildcards):
+    """The ground truth an edit is scored against: the edit's ``truth`` folder when the scene config names one
+    (a capture of the edited scene the user already has), else the synth stage's re-render of the edit."""
+    truth = scene_edit(wildcards.scene, wildcards.edit).get("truth")
+    if truth:
+        if not os.path.isfile(os.path.join(truth, "transforms.json")):
+            raise ConfigError(f"scene {wildcards.scene!r}, edit {wildcards.edit!r}: truth {truth!r} is not a capture "
+                              "folder (no transforms.json)")
+        return truth
+    return f"{RESULTS}/{wildcards.scene}/edits/{wildcards.edit}/truth"
 
 
 def scene_edit(scene, name):

@@ -70,7 +70,7 @@ rule edit_metrics:
     the capture, and both on the pixels the edit changed."""
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
-        truth=f"{RESULTS}/{{scene}}/edits/{{edit}}/truth",
+        truth=edit_truth,
         renders=f"{RESULTS}/{{scene}}/edits/{{edit}}/renders",
         baseline=f"{RESULTS}/{{scene}}/renders",
     output:
