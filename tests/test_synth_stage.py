@@ -52,10 +52,11 @@ def test_cli_config_json(tmp_path, capsys):
 def test_cli_errors_are_one_line(tmp_path, capsys):
     cfg = tiny_demo()
     cfg["spp"] = "many"
-    assert main(["--config-json", json.dumps(cfg), "--out", str(tmp_path / "c")]) == 2
+    assert main(["--config-json", json.dumps(cfg), "--out", str(tmp_path / "c")]) == 1
     err = capsys.readouterr().err.strip()
-    assert err == "error: synth.spp: must be an integer, got 'many'"
-    assert main(["--scene", "demo", "--edits", "nope", "--out", str(tmp_path / "c")]) == 2
+    # the same schema check as the workflow's config (stages.config.check_section)
+    assert err == "error: config synth.spp must be of type integer, got str 'many' (schema synth.schema.yaml)"
+    assert main(["--scene", "demo", "--edits", "nope", "--out", str(tmp_path / "c")]) == 1
     assert "unknown edit list 'nope'" in capsys.readouterr().err
-    assert main(["--scene", "no_such_scene", "--out", str(tmp_path / "c")]) == 2
+    assert main(["--scene", "no_such_scene", "--out", str(tmp_path / "c")]) == 1
     assert "unknown scene 'no_such_scene'" in capsys.readouterr().err

@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from stages.config import load_config
+from stages.config import check_section, load_config
 from stages.output import run_stage, staged_folder
 
 
@@ -38,7 +38,7 @@ def procedural_main(argv: list[str]) -> int:
                                    progress=not args.no_progress)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return 1
     total = sum(report["seconds"].values())
     print(f"rendered {len(report['rendered'])} scene(s) in {total:.1f} s, skipped {len(report['skipped'])} "
           f"already complete, into {args.out}")
@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads is not None:
         if args.threads < 1:
             print(f"error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
-            return 2
+            return 1
         import drjit as dr
 
         dr.set_thread_count(args.threads)
@@ -104,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
                 synth_cfg = json.loads(args.config_json)
             except json.JSONDecodeError as e:
                 raise ValueError(f"--config-json: invalid JSON ({e})") from None
+            if not isinstance(synth_cfg, dict):
+                raise ValueError(f"--config-json must be a JSON object (the 'synth' section), got "
+                                 f"{type(synth_cfg).__name__}")
+            synth_cfg = check_section("synth", synth_cfg)  # the schema the workflow's config is checked with
             name = None
         if args.edits_json:
             try:
@@ -122,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                              extra={"seconds_per_view": extra["seconds_per_view"], "spp": extra["spp"]})
     except ValueError as e:  # includes ConfigError and CaptureError subclasses of ValueError
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return 1
     print(f"wrote {len(capture.views)} views to {args.out} ({extra['spp']} spp, "
           f"{extra['mean_seconds_per_view']} s/view, {extra['seconds_total']} s total)")
     return 0
