@@ -91,7 +91,7 @@ def test_render_one_tiny_scene_and_resume(tmp_path, capsys):
     assert "rendered 1 scene(s)" in printed and "skipped 1 already complete" in printed
     stage = json.loads((out / "scene_0001" / "stage.json").read_text())
     assert stage["config"]["synth"] == random_scene_config(4, resolution=(16, 16), views=2, spp=4)
-    assert main([*args[:2], "-1", *args[3:]]) == 2
+    assert main([*args[:2], "-1", *args[3:]]) == 1
     assert "count must be >= 0" in capsys.readouterr().err
 
 
