@@ -11,6 +11,7 @@ import pytest
 from models.capture import CaptureError, read_capture, read_sfm_points
 from models.capture.colmap_layout import colmap_from_c2w
 from models.initialisation import InitConfig, initialise
+from models.synth.cameras import look_at
 
 
 def srgb_encode(linear):
@@ -39,17 +40,6 @@ def write_png(path, rgb8, gamma=None):
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"".join(chunks))
 
 
-def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)):
-    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
-    back = (eye - target) / np.linalg.norm(eye - target)
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
-    c2w[:3, 3] = eye
-    return c2w
-
-
 W, H, N = 8, 6, 5
 POINTS = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5], [0.3, 0.2, -0.4], [-0.2, 0.1, 0.3]])
 COLOURS = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [128, 128, 128], [10, 200, 90], [250, 250, 250]])
@@ -65,7 +55,7 @@ def write_dataset(root, **top):
         write_png(root / "images" / f"frame_{i:05d}.png", np.round(srgb_encode(linear) * 255))
         truth.append(linear)
         eye = [3 * np.cos(i), 0.5, 3 * np.sin(i)]
-        frames.append({"file_path": f"images/frame_{i:05d}.png", "transform_matrix": look_at(eye).tolist(),
+        frames.append({"file_path": f"images/frame_{i:05d}.png", "transform_matrix": look_at(eye, (0.0, 0.0, 0.0)).tolist(),
                        "colmap_im_id": i + 1})
     tf = {"w": W, "h": H, "fl_x": 7.0, "fl_y": 7.5, "cx": 4.0, "cy": 3.0,
           "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "camera_model": "OPENCV", "frames": frames,

@@ -11,8 +11,9 @@ one text prompt per buffer; its v prediction is turned into x0 and decoded by th
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from models.lazy import lazy_getattr
 
 # name -> submodule; imported on first use (PEP 562), so that importing models.buffernet.training.config or
 # models.buffernet.fill (the settings, what a stage's --help and the workflow need) does not load torch / diffusers
@@ -30,9 +31,4 @@ if TYPE_CHECKING:
     from .tokenizer import clip_tokenizer
 
 
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_getattr(__name__, _EXPORTS, globals())

@@ -8,8 +8,9 @@ browser sends is checked there first), ``benchmark.py`` FPS and time to first fr
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from models.lazy import lazy_getattr
 
 # name -> submodule, imported on first use (PEP 562): `python -m stages.view --help` answers without torch / Warp
 _EXPORTS = {"camera_from_viser": "camera", "resize_camera": "camera", "viewport_size": "camera",
@@ -24,9 +25,4 @@ if TYPE_CHECKING:
     from .session import ViewerSession, gizmo_ops, named_selections
 
 
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_getattr(__name__, _EXPORTS, globals())
