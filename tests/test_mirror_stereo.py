@@ -15,8 +15,8 @@ from models.capture.camera import Camera
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.mirror_stereo import (MirrorView, fit_plane, mirror_stereo_gaussians, mirror_views,
-                                                 planar_components)
+from models.reconstruction.mirror_stereo import (MirrorView, complete_flat, fit_plane, mirror_stereo_gaussians,
+                                                 mirror_views, planar_components)
 
 PANEL_Z, PANEL_HALF = 2.0, 0.5
 BACKGROUND = np.array([0.3, 0.3, 0.3])
@@ -103,7 +103,13 @@ def test_stereo_puts_gaussians_on_the_panel_seen_only_in_the_mirror(which, reque
     footprint = 3.0 / FL  # a pixel at the panel's virtual distance (1 to the mirror + 2 up)
     assert np.median(np.abs(p[:, 2] - PANEL_Z)) < footprint
     assert np.mean(np.abs(p[:, 2] - PANEL_Z) < 2 * footprint) > 0.9
-    assert np.mean((np.abs(p[:, :2]) < PANEL_HALF + 2 * footprint).all(-1)) > 0.9  # not on the grey around it
+    # flat grey around the panel (the same wall, z = PANEL_Z) matches at every depth: only the completion from
+    # matched neighbours places it (complete_flat), so it reaches at most its radius (6 px) beyond the texture
+    assert stats["completed"] > 0
+    assert np.mean((np.abs(p[:, :2]) < PANEL_HALF + 8 * footprint).all(-1)) > 0.97
+    # each faces back down its reflected ray, towards the mirror it was seen in (unit normals, not 0)
+    n = fill.normals.numpy()
+    assert np.allclose(np.linalg.norm(n, axis=1), 1, atol=1e-5) and (n[:, 2] < -0.5).all()
     # the panel is covered: Gaussians within 2 footprints of most of a grid over it
     g = np.linspace(-0.45, 0.45, 10)
     grid = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
@@ -172,3 +178,23 @@ def test_fit_plane_rejects_what_is_not_one_plane():
     assert np.allclose(n, [0, 0, -1]) and abs(d) < 1e-9  # normal facing the camera
     bumpy = flat + np.c_[np.zeros((200, 2)), 0.1 * flat[:, 0] ** 2]
     assert fit_plane(bumpy, towards=np.array([0, 0, 3.0]), tol=1e-3) is None
+
+
+def test_flat_pixels_take_the_depth_their_matched_neighbours_agree_on():
+    """complete_flat: a flat pixel among matched ones takes their median depth where they agree and the other
+    views' colours agree there too; not across an occlusion edge (neighbours disagree), not where the cost
+    at that depth is high, not far from any matched pixel."""
+    h, w, depths = 20, 30, 16
+    pix = np.arange(h * w)
+    ys, xs = np.divmod(pix, w)
+    best = np.where(xs < 15, 4, 12)  # two surfaces: left at depth 4, right at depth 12
+    keep = (xs % 3 == 0) & (ys < 15)  # texture on every third column, rows 0-14
+    agg = np.full((h * w, depths), 0.05)  # flat colour: every depth looks right
+    agg[(ys == 5) & (xs == 7), 4] = 0.5  # ... except one pixel whose other views disagree at depth 4
+    fill = complete_flat(best, keep, agg, pix, (h, w), max_cost=0.2, radius=2, min_support=4, max_spread=1.0)
+    got = fill.reshape(h, w)
+    assert got[5, 4] == 4 and got[5, 20] == 12  # inside either surface
+    assert got[5, 7] == -1  # photometrically inconsistent at the neighbours' depth
+    assert got[5, 13] == -1 and got[5, 14] == -1  # at the edge: neighbours from both surfaces disagree
+    assert (got[18:] == -1).all()  # no matched pixel within the radius
+    assert (fill[keep] == -1).all()  # matched pixels keep their own depth

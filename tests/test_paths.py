@@ -100,6 +100,23 @@ def test_path_length_one_and_short_normals_stop():
     assert not out.alive[0].any()
 
 
+def test_half_transparent_vertex_with_agreeing_normals_reflects():
+    """A mirror of opacity 0.5 with unit normals: its accumulated normal is 0.5 long, but per unit of opacity
+    it is 1, so the path goes on (the length test is on normal / opacity, like roughness and F0) and reflects
+    as the opaque mirror does (vertex values are conditional on the ray ending there). A zero normal (nothing
+    known about the surface) still stops."""
+    o, d = camera_rays(12)
+    half = scene()
+    half.opacity_logits[0] = 0.0  # opacity 0.5
+    out = trace_paths(reference_fn(), o, d, half, PathConfig(max_path_length=2), torch.Generator().manual_seed(0))
+    full = trace_paths(reference_fn(), o, d, scene(), PathConfig(max_path_length=2), torch.Generator().manual_seed(0))
+    assert out.alive[0].all() and full.specular.amax() > 0.3
+    assert torch.allclose(out.specular, full.specular, atol=1e-6)
+    flat = scene(mirror_normal=(0.0, 0.0, 0.0))
+    out = trace_paths(reference_fn(), o, d, flat, PathConfig(max_path_length=2), torch.Generator().manual_seed(0))
+    assert not out.alive[0].any() and torch.count_nonzero(out.specular) == 0
+
+
 def test_specular_gradients_reach_only_bounce_geometry_and_diffuse():
     g = scene().requires_grad_(True)
     o, d = camera_rays(12)

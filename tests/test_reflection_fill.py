@@ -12,8 +12,8 @@ import torch
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.reflection_fill import (box_exit, highlight_fill_gaussians, reflection_fill_gaussians,
-                                                seen_empty, sweep_box_scale)
+from models.reconstruction.reflection_fill import (box_exit, highlight_fill_gaussians, matte_material,
+                                                reflection_fill_gaussians, seen_empty, sweep_box_scale)
 
 
 def _gaussians(means: torch.Tensor, scale: float, opacity: float) -> Gaussians:
@@ -62,7 +62,21 @@ def test_fill_follows_open_reflections_only():
     assert torch.allclose(xy, xy[:, :1].expand_as(xy), atol=1e-5)
     assert (means[:, 2].reshape(-1, 4).diff(dim=1) > 0).all()
     torch.testing.assert_close(fill.diffuse, torch.tensor([[0.2, 0.5, 3.0]]).expand(len(fill), 3))
-    assert torch.isfinite(fill.log_scales).all() and (fill.roughness == 1).all()
+    assert torch.isfinite(fill.log_scales).all()
+    # the room's matte material (the scene's non-mirror Gaussians: roughness 0.5, F0 0.04), not a constant
+    assert (fill.roughness == 0.5).all() and torch.allclose(fill.f0, torch.tensor(0.04))
+    # normals face back along the reflected ray they were found on (straight up from the floor mirror): a view
+    # that looks at them directly traces their sheen; a zero normal would stop every path there
+    torch.testing.assert_close(fill.normals, torch.tensor([[0.0, 0.0, -1.0]]).expand(len(fill), 3))
+
+
+def test_matte_material_ignores_mirrors_and_falls_back_without_matte_gaussians():
+    g = _gaussians(torch.zeros(5, 3), 0.1, 0.5)
+    g.roughness[:] = torch.tensor([0.8, 0.9, 1.0, 0.0, 0.0])
+    g.f0[:] = torch.tensor([0.02, 0.03, 0.05, 0.95, 0.95])[:, None]
+    assert matte_material(g) == pytest.approx((0.9, 0.03))  # the two mirrors (F0 0.95, roughness 0) left out
+    g.roughness[:], g.f0[:] = 0.0, 0.9
+    assert matte_material(g) == (1.0, 0.04)
 
 
 def test_highlight_fill_puts_emitters_where_bright_open_reflections_leave_the_box():

@@ -34,7 +34,7 @@ TraceFn = Callable[[torch.Tensor, torch.Tensor, Gaussians], TraceOutput]
 @dataclass
 class PathConfig:
     max_path_length: int = 3  # segments per path: 1 = primary only (no reflections), 3 = paper
-    normal_min_norm: float = 0.7  # a path stops where the accumulated normal is shorter than this
+    normal_min_norm: float = 0.7  # a path stops where the accumulated normal / accumulated opacity is shorter
     min_roughness: float = 0.01  # roughness clamp at a vertex (GGX alpha = roughness^2); at or below it
     # the vertex is a perfect mirror (delta reflection, weight = Schlick F(n.wo)): the limit, without noise
     origin_offset: float = 0.01  # reflection origin moved this far along the reflected ray (scene units);
@@ -94,16 +94,17 @@ def trace_paths(
     o, d = origins, dirs
     throughput = torch.ones((rays, 3), dtype=origins.dtype, device=origins.device)
     for _ in range(config.max_path_length - 1):
+        # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T), except
+        # truncated rays, which the tracer's tail rule already normalised; the normal too: a half-transparent
+        # vertex whose Gaussians agree on their normal reflects, one whose normals cancel out does not
+        opacity = seg.opacity()
         n_acc = seg.normal.detach()
         n_len = n_acc.norm(dim=-1)
-        keep = n_len >= config.normal_min_norm
+        keep = n_len >= config.normal_min_norm * opacity.reshape(-1)
         n = n_acc / n_len.clamp_min(1e-12)[:, None]
         wo = -d
         # a vertex seen from behind reflects as seen from the front (accumulated normals can point away)
         n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)
-        # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T), except
-        # truncated rays, which the tracer's tail rule already normalised
-        opacity = seg.opacity()
         rough_raw = seg.roughness.detach().reshape(-1, 1) / opacity
         rough = rough_raw.reshape(-1).clamp(config.min_roughness, 1.0)
         f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)

@@ -35,7 +35,7 @@ from scipy.ndimage import uniform_filter
 
 from models.gaussians import Gaussians
 
-from .reflection_fill import LUMINANCE, box_exit, matte_gaussians, scene_box, seen_empty, shiny
+from .reflection_fill import LUMINANCE, box_exit, matte_gaussians, matte_material, scene_box, seen_empty, shiny
 
 log = logging.getLogger(__name__)
 
@@ -187,13 +187,42 @@ def mirror_views(rays, trace_fn, gaussians: Gaussians, min_pixels: int = 64, ope
     return out, stats
 
 
+def complete_flat(best: np.ndarray, keep: np.ndarray, agg: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
+                  max_cost: float, radius: int, min_support: int = 6, max_spread: float = 2.0) -> np.ndarray:
+    """Depth indices [P] (-1: none) for the open mirror pixels the sweep could not decide (flat colour matches at
+    every depth) from the decided ones around them: the median depth index of the kept pixels within
+    ``radius`` pixels of the reference image, taken where at least ``min_support`` of them agree (their spread,
+    median absolute deviation, at most ``max_spread`` sweep planes; across an occlusion edge they do not) and
+    the other views' colours agree at that depth too (aggregated cost < ``max_cost``). Walls seen only in a
+    mirror are mostly flat: without this they stay holes wherever they lack texture."""
+    h, w = shape
+    fill = np.full(len(pix), -1, dtype=np.int64)
+    if not keep.any() or keep.all():
+        return fill
+    ys, xs = np.divmod(pix, w)
+    grid = np.full((h, w), -1, dtype=np.int64)
+    grid[ys[keep], xs[keep]] = best[keep]
+    for i in np.nonzero(~keep)[0]:
+        patch = grid[max(ys[i] - radius, 0):ys[i] + radius + 1, max(xs[i] - radius, 0):xs[i] + radius + 1]
+        near = patch[patch >= 0]
+        if len(near) < min_support:
+            continue
+        k = int(np.median(near))
+        if np.median(np.abs(near - k)) <= max_spread and agg[i, k] < max_cost:
+            fill[i] = k
+    return fill
+
+
 def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray, hi: np.ndarray, t_min: float,
                depths: int = 96, window: int = 2, min_views: int = 3, ratio: float = 0.9,
                max_cost: float = 0.2, best_fraction: float = 1.0, min_contrast: float = 0.1,
-               max_basin: float = 0.4) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+               max_basin: float = 0.4, complete_radius: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                       np.ndarray, int, int]:
     """Plane sweep of one reference view's open mirror pixels (module docstring). Returns the kept pixels'
-    (points [M, 3], colours [M, 3], virtual distances [M]) and how many otherwise clear pixels were dropped
-    because their best depth lies on the edge of the swept range."""
+    (points [M, 3], colours [M, 3], virtual distances [M], reflected directions [M, 3]), how many otherwise
+    clear pixels were dropped because their best depth lies on the edge of the swept range, and how many of
+    the kept ones are flat pixels completed from their decided neighbours (``complete_flat`` within
+    ``complete_radius`` pixels; 0 turns it off)."""
     h, w = ref.open.shape
     pix = np.nonzero(ref.open.reshape(-1))[0]
     x = ref.points.reshape(-1, 3)[pix]
@@ -251,8 +280,17 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     # a best depth on the sweep's first or last plane is not a minimum (the surface may lie beyond): not kept
     edge = keep & ((best == 0) | (best == depths - 1))
     keep &= ~edge
+    filled = 0
+    if complete_radius > 0:
+        fill = complete_flat(best, keep, agg, pix, (h, w), max_cost, complete_radius)
+        fill[edge] = -1
+        completed = fill >= 0
+        filled = int(completed.sum())
+        best = np.where(completed, fill, best)
+        keep |= completed
     tk = t[rows, best][keep]
-    return x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk), int(edge.sum())
+    return (x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk), r[keep],
+            int(edge.sum()), filled)
 
 
 @torch.no_grad()
@@ -266,18 +304,21 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     gaussians)`` decides which reflections are open (None: all are). Returns (Gaussians or None, statistics
     for the log)."""
     usable, stats = mirror_views(rays, trace_fn, gaussians)
-    stats.update(kept=0, added=0, edge=0)
+    stats.update(kept=0, added=0, edge=0, completed=0)
     if len(usable) < 2 or count <= 0:
         return None, stats
     lo, hi, step = scene_box(gaussians)
     centre, half = (lo + hi) / 2, far_scale * float((hi - lo).max()) / 2
     lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
-    pos, colour, dist, fl = [], [], [], []
+    pos, colour, dist, fl, seen_along = [], [], [], [], []
     for i, ref in enumerate(usable):
-        p, c, d, edge = sweep_view(ref, usable[:i] + usable[i + 1:], rays.views, lo, hi, 20 * step, **sweep)
+        p, c, d, r, edge, filled = sweep_view(ref, usable[:i] + usable[i + 1:], rays.views, lo, hi, 20 * step,
+                                              **sweep)
         stats["edge"] += edge
+        stats["completed"] += filled
         pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))
-    pos, colour, dist, fl = (np.concatenate(a) for a in (pos, colour, dist, fl))
+        seen_along.append(r)
+    pos, colour, dist, fl, seen_along = (np.concatenate(a) for a in (pos, colour, dist, fl, seen_along))
     stats["kept"] = len(pos)
     if stats["edge"]:
         stats["notes"] = [f"mirror stereo: {stats['edge']} pixels matched best on the edge of the depth sweep "
@@ -288,4 +329,5 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     pos, colour, scale = pos[pick], colour[pick], dist[pick] / fl[pick]  # a pixel at its virtual distance
     stats["added"] = len(pos)
     return matte_gaussians(torch.from_numpy(pos), torch.from_numpy(scale).clamp_min(1e-6), opacity,
-                           torch.from_numpy(colour).clamp(0.0, 100.0), dtype), stats
+                           torch.from_numpy(colour).clamp(0.0, 100.0), dtype,
+                           facing=torch.from_numpy(seen_along[pick]), material=matte_material(gaussians)), stats

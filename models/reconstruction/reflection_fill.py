@@ -13,8 +13,10 @@ views the reflected rays of one unseen point cross there, so training keeps the 
 (they explain several views' reflections) and prunes the rest.
 
 Each starts with the colour the reflection needs, ``specular / F0`` of its pixel (a mirror's specular is
-F0 times the reflected radiance), opacity 0.1, roughness 1 and F0 0.04 (matte: it is seen, not a mirror),
-normal 0, scale half the spacing along its ray.
+F0 times the reflected radiance), opacity 0.1, the scene's typical matte material (``matte_material``: it is
+seen, not a mirror), its normal facing back along the reflected ray it was found on (the side it was seen
+from: a view that later looks at it directly then traces its sheen, where a zero normal would stop every
+path there and leave its specular black), scale half the spacing along its ray.
 """
 
 from __future__ import annotations
@@ -41,20 +43,41 @@ def scene_box(gaussians: Gaussians) -> tuple[torch.Tensor, torch.Tensor, float]:
     return lo, hi, float((hi - lo).max()) * 1e-3
 
 
+MATTE_ROUGHNESS, MATTE_F0 = 1.0, 0.04  # the material of fill Gaussians in a scene with no matte Gaussians yet
+
+
+@torch.no_grad()
+def matte_material(gaussians: Gaussians) -> tuple[float, float]:
+    """(roughness, F0): the medians over the scene's Gaussians that are not mirror-like (``shiny``), i.e. the
+    material that training from the buffers gave the room's ordinary surfaces; (1, 0.04) when there are none.
+    Fill Gaussians take it: what is seen only in mirrors is most likely made of what the room is made of."""
+    rough, f0 = gaussians.roughness.detach().reshape(-1), gaussians.f0.detach()
+    matte = ~shiny(f0, rough[:, None])
+    if not bool(matte.any()):
+        return MATTE_ROUGHNESS, MATTE_F0
+    return float(rough[matte].clamp(0, 1).median()), float(f0[matte].mean(-1).clamp(0, 1).median())
+
+
 def matte_gaussians(pos: torch.Tensor, scale: torch.Tensor, opacity: float, colour: torch.Tensor,
-                    dtype=torch.float32) -> Gaussians:
+                    dtype=torch.float32, facing: torch.Tensor | None = None,
+                    material: tuple[float, float] = (MATTE_ROUGHNESS, MATTE_F0)) -> Gaussians:
     """Isotropic Gaussians at ``pos`` [N, 3] with per-Gaussian ``scale`` [N], ``opacity`` and diffuse ``colour``
-    [N, 3]: matte (roughness 1, F0 0.04), normal 0 (seen, not mirrors)."""
+    [N, 3], matte (``material``: roughness, F0). ``facing`` [N, 3]: the directions they were seen along; their
+    normals point back along them. Without it the normal is 0, which stops every reflection path there (for
+    lights, whose own radiance dwarfs what they would reflect)."""
     n, f = len(pos), dict(dtype=dtype)
+    normals = torch.zeros((n, 3), **f) if facing is None else \
+        -torch.nn.functional.normalize(facing.to(**f).reshape(n, 3), dim=-1)
+    rough, f0 = material
     return Gaussians(
         means=pos.to(**f),
         quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
         log_scales=torch.log(scale).reshape(n, 1).repeat(1, 3).to(**f),
         opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
         diffuse=colour.to(**f),
-        normals=torch.zeros((n, 3), **f),
-        roughness=torch.ones((n,), **f),
-        f0=torch.full((n, 3), 0.04, **f),
+        normals=normals,
+        roughness=torch.full((n,), rough, **f),
+        f0=torch.full((n, 3), f0, **f),
     )
 
 
@@ -141,17 +164,19 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
     pos = (x[:, None, :] + t[..., None] * r[:, None, :]).reshape(-1, 3)
     spacing = ((t_max - t_min) / per_ray)[:, None].expand(-1, per_ray).reshape(-1)
     index = index[:, None].expand(-1, per_ray).reshape(-1)
+    r = r[:, None, :].expand(-1, per_ray, -1).reshape(-1, 3)
     unseen = torch.nonzero(~seen_empty(pos, rays.views)).reshape(-1)
     unseen = unseen[torch.randperm(len(unseen), generator=gen)[:count]].sort().values
     stats["unseen"] = len(unseen)
     if len(unseen) == 0:
         return None, stats
-    pos, spacing, index = pos[unseen], spacing[unseen], index[unseen]
+    pos, spacing, index, r = pos[unseen], spacing[unseen], index[unseen], r[unseen]
     targets = rays.targets
     colour = targets["specular"][index] / targets["f0"][index].clamp_min(0.05) if "specular" in targets \
         else torch.full((len(index), 3), 0.2, dtype=pos.dtype)
     stats["added"] = len(pos)
-    return matte_gaussians(pos, 0.5 * spacing.clamp_min(1e-6), 0.1, colour.clamp(0.0, 100.0), dtype), stats
+    return matte_gaussians(pos, 0.5 * spacing.clamp_min(1e-6), 0.1, colour.clamp(0.0, 100.0), dtype, facing=r,
+                           material=matte_material(gaussians)), stats
 
 
 def _exit_purity(x, r, b, lo, hi, s: float, k: int) -> float:

@@ -305,7 +305,8 @@ class Trainer:
                                                         cfg.mirror_stereo_count, seed=cfg.seed),
                                "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                                "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
-                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched)")
+                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, %(completed)d of "
+                               "them flat ones completed from their matched neighbours)")
             if cfg.highlight_fill:
                 self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
                                "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
