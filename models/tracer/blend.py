@@ -1,25 +1,64 @@
-"""Shared end of every forward variant: the tail rule and the per-ray output writes."""
+"""Front-to-back compositing shared by every forward variant: the per-ray state, the per-hit step, and the
+tail rule with the per-ray output writes."""
 
 from __future__ import annotations
 
 import warp as wp
 
-from models.tracer.structs import RayOutputs
+from models.tracer.structs import GaussianData, RayOutputs, Replay
+
+
+@wp.struct
+class Blend:
+    """One ray's compositing state: sums of w f over the blended hits (w = T alpha), T, and their count.
+    A value in Warp (a wp.func gets a copy): the step returns the updated state."""
+
+    trans: float        # transmittance in front of the next hit
+    diffuse: wp.vec3
+    depth: float
+    normal: wp.vec3
+    roughness: float
+    f0: wp.vec3
+    blended: int        # hits blended (= the sorted replay prefix)
 
 
 @wp.func
-def write_outputs(ray: int, n_acc: int, blended: int, trans: float, c_diffuse: wp.vec3, c_depth: float,
-                  c_normal: wp.vec3, c_rough: float, c_f0: wp.vec3, outs: RayOutputs):
+def blend_start() -> Blend:
+    """Nothing blended: T = 1, zero sums."""
+    acc = Blend()
+    acc.trans = 1.0
+    return acc
+
+
+@wp.func
+def blend_slot(acc: Blend, g: GaussianData, rep: Replay, ray: int, slot: int) -> Blend:
+    """Composite the hit in replay slot ``slot`` behind the blended ones; stores its incoming T for the backward."""
+    gid = rep.ids[ray, slot]
+    a = rep.alpha[ray, slot]
+    w = acc.trans * a
+    acc.diffuse += w * g.diffuse[gid]
+    acc.normal += w * g.normal[gid]
+    acc.f0 += w * g.f0[gid]
+    acc.roughness += w * g.roughness[gid]
+    acc.depth += w * rep.t[ray, slot]
+    rep.trans[ray, slot] = acc.trans
+    acc.trans = acc.trans * (1.0 - a)
+    acc.blended += 1
+    return acc
+
+
+@wp.func
+def write_outputs(ray: int, n_acc: int, acc: Blend, outs: RayOutputs):
     """Apply the tail rule (truncated: divide by 1 - T_end) and store."""
     scale = float(1.0)
-    if blended < n_acc:
-        scale = 1.0 / (1.0 - trans)
-    outs.diffuse[ray] = scale * c_diffuse
-    outs.depth[ray] = scale * c_depth
-    outs.normal[ray] = scale * c_normal
-    outs.roughness[ray] = scale * c_rough
-    outs.f0[ray] = scale * c_f0
-    outs.transmittance[ray] = trans
+    if acc.blended < n_acc:
+        scale = 1.0 / (1.0 - acc.trans)
+    outs.diffuse[ray] = scale * acc.diffuse
+    outs.depth[ray] = scale * acc.depth
+    outs.normal[ray] = scale * acc.normal
+    outs.roughness[ray] = scale * acc.roughness
+    outs.f0[ray] = scale * acc.f0
+    outs.transmittance[ray] = acc.trans
     outs.hit_count[ray] = n_acc
-    outs.blended[ray] = blended
+    outs.blended[ray] = acc.blended
     outs.needed[ray] = 0

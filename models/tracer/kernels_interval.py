@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from models.tracer.blend import write_outputs
+from models.tracer.blend import blend_slot, blend_start, write_outputs
 from models.tracer.hit import eval_packed, hit_less
 from models.tracer.kernels_ordered import safe_inv
 from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
@@ -81,6 +81,13 @@ def sort_slots(rep: Replay, ray: int, base: int, m: int):
 
 
 @wp.func
+def window_to(rep: Replay, ray: int, slot: int, shift: float):
+    """A full window ends at the hit in ``slot`` (the farthest kept): its (d_t, d_id) and the query's max_dist."""
+    t = rep.t[ray, slot]
+    return t, rep.ids[ray, slot], t - shift + 2.0 * margin(t)
+
+
+@wp.func
 def later(t: float, gid: int, t_ref: float, id_ref: int) -> int:
     """(t, gid) after (t_ref, id_ref) in the hit order (by t, ties by id)."""
     return hit_less(t_ref, id_ref, t, gid)
@@ -108,13 +115,7 @@ def probe_beyond(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePa
 def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
                      outs: RayOutputs) -> int:
     """Windows of t front to back. Returns 0 when the blended prefix outgrows the replay buffer."""
-    trans = float(1.0)
-    c_diffuse = wp.vec3(0.0)
-    c_normal = wp.vec3(0.0)
-    c_f0 = wp.vec3(0.0)
-    c_depth = float(0.0)
-    c_rough = float(0.0)
-    blended = int(0)
+    acc = blend_start()
     n_acc = int(0)
     cand = int(0)
     obb = int(0)
@@ -132,7 +133,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
     carried = int(0)        # carried hits, in slots capacity - carried .. capacity - 1
     cap = prm.capacity
     while done == 0:
-        base = blended
+        base = acc.blended
         room = cap - base
         if room < 2:
             outs.needed[ray] = 2 * cap
@@ -173,9 +174,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             full = 1
             next_skip_ok = 0
             last = 0
-            d_t = rep.t[ray, base + m - 1]
-            d_id = rep.ids[ray, base + m - 1]
-            max_dist = d_t - shift + 2.0 * margin(d_t)
+            d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
         query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
         gid = int(0)
         while wp.bvh_query_next(query, gid, max_dist):
@@ -201,14 +200,10 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                     full = 1
                                     next_skip_ok = 0
                                     last = 0
-                                    d_t = rep.t[ray, base + m - 1]
-                                    d_id = rep.ids[ray, base + m - 1]
-                                    max_dist = d_t - shift + 2.0 * margin(d_t)
+                                    d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
                             else:
                                 insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
-                                d_t = rep.t[ray, base + m - 1]
-                                d_id = rep.ids[ray, base + m - 1]
-                                max_dist = d_t - shift + 2.0 * margin(d_t)
+                                d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
                         elif full == 0 and m + carried < room:
                             carried += 1  # a later window's hit: carried there
                             store(rep, ray, cap - carried, h[0], gid, h[1])
@@ -219,23 +214,13 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
         depth = float(0.0)  # optical depth blended in this window: sum of -ln(1 - alpha)
         for j in range(m):
             if done == 0:
-                if trans < prm.trans_threshold:
+                if acc.trans < prm.trans_threshold:
                     done = 1
-                    n_acc = blended + (m - j) + carried  # accepted, never blended: the tail rule
+                    n_acc = acc.blended + (m - j) + carried  # accepted, never blended: the tail rule
                 else:
-                    s = base + j
-                    gi = rep.ids[ray, s]
-                    a = rep.alpha[ray, s]
-                    w = trans * a
-                    c_diffuse += w * g.diffuse[gi]
-                    c_normal += w * g.normal[gi]
-                    c_f0 += w * g.f0[gi]
-                    c_rough += w * g.roughness[gi]
-                    c_depth += w * rep.t[ray, s]
-                    rep.trans[ray, s] = trans
-                    trans = trans * (1.0 - a)
+                    a = rep.alpha[ray, base + j]
+                    acc = blend_slot(acc, g, rep, ray, base + j)
                     depth -= wp.log(1.0 - a)
-                    blended += 1
         if done == 0:
             t_lo = d_t
             id_lo = d_id
@@ -243,15 +228,15 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             skip_ok = next_skip_ok
             if skip_ok == 0:
                 carried = 0  # incomplete: the next window re-examines everything it overlaps (no duplicates)
-            n_acc = blended + carried
+            n_acc = acc.blended + carried
             if last != 0:
                 done = 1  # every hit of the ray was in this window
-            elif trans < prm.trans_threshold:
+            elif acc.trans < prm.trans_threshold:
                 done = 1
                 if carried == 0:
                     # opaque exactly at the end of what was examined: does one more accepted hit exist?
                     found = probe_beyond(ray, o, d, g, prm, t_lo, id_lo)
-                    n_acc = blended + int(found[0])
+                    n_acc = acc.blended + int(found[0])
                     cand += int(found[1])
             elif m == 0:
                 delta = delta * 4.0
@@ -259,9 +244,9 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                 # the next window: the length that takes T to the threshold at this window's optical-depth rate
                 # (measured from its first hit), x1/2 .. x4 of this one
                 span = wp.max(d_t - rep.t[ray, base], 1.0e-6 * delta)
-                need = wp.log(trans / prm.trans_threshold) + 0.1
+                need = wp.log(acc.trans / prm.trans_threshold) + 0.1
                 delta = wp.clamp(1.25 * need * span / wp.max(depth, 1.0e-6), 0.5 * delta, 4.0 * delta)
     outs.candidates[ray] = cand
     outs.obb_candidates[ray] = obb
-    write_outputs(ray, n_acc, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    write_outputs(ray, n_acc, acc, outs)
     return 1

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from models.tracer.blend import write_outputs
+from models.tracer.blend import blend_slot, blend_start, write_outputs
 from models.tracer.hit import eval_packed, hit_less
 from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
 
@@ -15,13 +15,7 @@ def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
     """Ablation (3DGRT-style): each round re-traverses the BVH keeping the k nearest hits
     beyond the last blended one in an insertion-sorted k-buffer (slots blended..blended+k-1
     of the replay buffer, so the backward is shared). Returns 0 on replay overflow."""
-    trans = float(1.0)
-    c_diffuse = wp.vec3(0.0)
-    c_normal = wp.vec3(0.0)
-    c_f0 = wp.vec3(0.0)
-    c_depth = float(0.0)
-    c_rough = float(0.0)
-    blended = int(0)
+    acc = blend_start()
     n_acc = int(0)
     cand = int(0)
     obb = int(0)
@@ -30,12 +24,12 @@ def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
     first = int(1)
     done = int(0)
     while done == 0:
-        if blended + prm.k > prm.capacity:
-            outs.needed[ray] = blended + prm.k
+        if acc.blended + prm.k > prm.capacity:
+            outs.needed[ray] = acc.blended + prm.k
             outs.candidates[ray] = cand
             outs.obb_candidates[ray] = obb
             return 0
-        base = blended
+        base = acc.blended
         m = int(0)
         query = wp.bvh_query_ray(prm.bvh, o, d)
         gid = int(0)
@@ -76,26 +70,16 @@ def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
         if m < prm.k:
             done = 1
         for j in range(base, base + m):
-            if trans < prm.trans_threshold:
+            if acc.trans < prm.trans_threshold:
                 done = 1
             else:
-                if blended == j:
-                    gj = rep.ids[ray, j]
-                    a = rep.alpha[ray, j]
-                    w = trans * a
-                    c_diffuse += w * g.diffuse[gj]
-                    c_normal += w * g.normal[gj]
-                    c_f0 += w * g.f0[gj]
-                    c_rough += w * g.roughness[gj]
-                    c_depth += w * rep.t[ray, j]
-                    rep.trans[ray, j] = trans
-                    trans = trans * (1.0 - a)
-                    blended += 1
+                if acc.blended == j:
                     last_t = rep.t[ray, j]
-                    last_id = gj
-        if m == 0 or trans < prm.trans_threshold:
+                    last_id = rep.ids[ray, j]
+                    acc = blend_slot(acc, g, rep, ray, j)
+        if m == 0 or acc.trans < prm.trans_threshold:
             done = 1
     outs.candidates[ray] = cand
     outs.obb_candidates[ray] = obb
-    write_outputs(ray, n_acc, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    write_outputs(ray, n_acc, acc, outs)
     return 1

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from models.tracer.blend import write_outputs
+from models.tracer.blend import blend_slot, blend_start, write_outputs
 from models.tracer.hit import eval_packed, hit_less
 from models.tracer.ordered_bvh import OrderedBvh
 from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
@@ -43,6 +43,17 @@ def safe_inv(x: float) -> float:
 
 
 @wp.func
+def heap_swap(keys: wp.array(dtype=float), nodes: wp.array(dtype=wp.int32), i: int, j: int):
+    """Exchange heap entries i and j."""
+    kt = keys[i]
+    nt = nodes[i]
+    keys[i] = keys[j]
+    nodes[i] = nodes[j]
+    keys[j] = kt
+    nodes[j] = nt
+
+
+@wp.func
 def heap_push(keys: wp.array(dtype=float), nodes: wp.array(dtype=wp.int32), size: int, key: float, node: int):
     """Push (key, node) into the binary min-heap of ``size`` entries (the caller checked the capacity)."""
     j = size
@@ -54,12 +65,7 @@ def heap_push(keys: wp.array(dtype=float), nodes: wp.array(dtype=wp.int32), size
         if j > 0:
             parent = (j - 1) // 2
             if keys[parent] > keys[j]:
-                kt = keys[parent]
-                nt = nodes[parent]
-                keys[parent] = keys[j]
-                nodes[parent] = nodes[j]
-                keys[j] = kt
-                nodes[j] = nt
+                heap_swap(keys, nodes, parent, j)
                 j = parent
                 rising = 1
 
@@ -82,12 +88,7 @@ def heap_pop(keys: wp.array(dtype=float), nodes: wp.array(dtype=wp.int32), size:
             if keys[2 * i + 2] < keys[smallest]:
                 smallest = 2 * i + 2
         if smallest != i:
-            kt = keys[smallest]
-            nt = nodes[smallest]
-            keys[smallest] = keys[i]
-            nodes[smallest] = nodes[i]
-            keys[i] = kt
-            nodes[i] = nt
+            heap_swap(keys, nodes, smallest, i)
             i = smallest
             moving = 1
 
@@ -109,20 +110,14 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
     cur_t = box_entry(o, inv_d, ob.node_lo[0], ob.node_hi[0], prm.t_min)
     if cur_t < 1.0e29:
         cur = 0
-    trans = float(1.0)
-    c_diffuse = wp.vec3(0.0)
-    c_normal = wp.vec3(0.0)
-    c_f0 = wp.vec3(0.0)
-    c_depth = float(0.0)
-    c_rough = float(0.0)
+    acc = blend_start()
     n = int(0)
-    blended = int(0)
     done = int(0)
     cand = int(0)
     obb = int(0)
     first_leaf = ob.n_leaves - 1
     while cur >= 0 or size > 0:
-        if done != 0 and n > blended:
+        if done != 0 and n > acc.blended:
             break
         if cur < 0:
             cur = nodes[0]
@@ -151,7 +146,7 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                             # insert into the pending hits [blended, n), kept sorted (hits arrive nearly in order)
                             gid = ob.order[k]
                             j = n
-                            while j > blended and hit_less(h[0], gid, rep.t[ray, j - 1], rep.ids[ray, j - 1]) != 0:
+                            while j > acc.blended and hit_less(h[0], gid, rep.t[ray, j - 1], rep.ids[ray, j - 1]) != 0:
                                 rep.ids[ray, j] = rep.ids[ray, j - 1]
                                 rep.t[ray, j] = rep.t[ray, j - 1]
                                 rep.alpha[ray, j] = rep.alpha[ray, j - 1]
@@ -193,25 +188,14 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
             if bound < 1.0e38:
                 bound = bound - 1.0e-5 * (1.0 + wp.abs(bound))
             # the pending hits [blended, n) are sorted: blend from the front while they are final
-            while done == 0 and blended < n and rep.t[ray, blended] < bound:
-                if trans < prm.trans_threshold:
+            while done == 0 and acc.blended < n and rep.t[ray, acc.blended] < bound:
+                if acc.trans < prm.trans_threshold:
                     done = 1
                 else:
-                    id_best = rep.ids[ray, blended]
-                    t_best = rep.t[ray, blended]
-                    a = rep.alpha[ray, blended]
-                    w = trans * a
-                    c_diffuse += w * g.diffuse[id_best]
-                    c_normal += w * g.normal[id_best]
-                    c_f0 += w * g.f0[id_best]
-                    c_rough += w * g.roughness[id_best]
-                    c_depth += w * t_best
-                    rep.trans[ray, blended] = trans
-                    trans = trans * (1.0 - a)
-                    blended += 1
-            if trans < prm.trans_threshold:
+                    acc = blend_slot(acc, g, rep, ray, acc.blended)
+            if acc.trans < prm.trans_threshold:
                 done = 1
     outs.candidates[ray] = cand
     outs.obb_candidates[ray] = obb
-    write_outputs(ray, n, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    write_outputs(ray, n, acc, outs)
     return 1

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from models.tracer.blend import write_outputs
+from models.tracer.blend import blend_slot, blend_start, write_outputs
 from models.tracer.hit import eval_packed, hit_less
 from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
 
@@ -45,14 +45,8 @@ def forward_single(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trace
         outs.needed[ray] = n
         outs.hit_count[ray] = n
         return 0
-    trans = float(1.0)
-    c_diffuse = wp.vec3(0.0)
-    c_normal = wp.vec3(0.0)
-    c_f0 = wp.vec3(0.0)
-    c_depth = float(0.0)
-    c_rough = float(0.0)
+    acc = blend_start()
     taken = int(0)
-    blended = int(0)
     done = int(0)
     while taken < n and done == 0:
         end = wp.min(taken + prm.k, n)
@@ -78,20 +72,10 @@ def forward_single(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trace
                 rep.alpha[ray, j] = a_best
         for j in range(taken, end):
             if done == 0:
-                if trans < prm.trans_threshold:
+                if acc.trans < prm.trans_threshold:
                     done = 1
                 else:
-                    gid = rep.ids[ray, j]
-                    a = rep.alpha[ray, j]
-                    w = trans * a
-                    c_diffuse += w * g.diffuse[gid]
-                    c_normal += w * g.normal[gid]
-                    c_f0 += w * g.f0[gid]
-                    c_rough += w * g.roughness[gid]
-                    c_depth += w * rep.t[ray, j]
-                    rep.trans[ray, j] = trans
-                    trans = trans * (1.0 - a)
-                    blended += 1
+                    acc = blend_slot(acc, g, rep, ray, j)
         taken = end
-    write_outputs(ray, n, blended, trans, c_diffuse, c_depth, c_normal, c_rough, c_f0, outs)
+    write_outputs(ray, n, acc, outs)
     return 1
