@@ -35,8 +35,9 @@ def test_regions_score_only_their_pixels(tmp_path):
     m = evaluate_renders(cap, tmp_path, regions={"quadrant": box})["views"][test.name]
     assert m["quadrant_pixels"] == inside.sum() > 0
     # only the wrong pixels, error 0.1, at the view's ground-truth peak (no clamp)
-    assert abs(m["quadrant_psnr_diffuse"] - (20.0 + 20 * np.log10(m["peak_diffuse"]))) < 1e-3
-    assert m["peak_diffuse"] == test.buffers["diffuse"].max()
+    assert abs(m["quadrant_psnr_diffuse"] - (20.0 + 20 * np.log10(m["peak"]))) < 1e-3
+    assert m["peak"] == pytest.approx(float((test.buffers["diffuse"] + test.buffers["specular"]).max()))
+    assert m["peak_diffuse"] == test.buffers["diffuse"].max()  # each layer's own maximum, recorded only
     assert m["psnr_diffuse"] > m["quadrant_psnr_diffuse"] + 1  # the whole image dilutes the error
     assert m["quadrant_psnr_specular"] > 150
 

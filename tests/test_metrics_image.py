@@ -107,3 +107,23 @@ def test_mu_law_and_peak():
     assert hdr.peak(np.zeros((4, 4, 3))) == 1.0 and hdr.peak(np.full((2, 2, 3), 7.0)) == 7.0
     x = np.array([0.5])
     assert psnr(x, x + 0.1, peak=2.0) == pytest.approx(20 + 20 * math.log10(2.0))
+
+
+def test_layers_are_scored_at_the_views_peak_not_their_own():
+    """A view with almost no reflection: the same small absolute specular error must not score 15x worse because
+    the specular layer's own maximum is tiny (evaluate scores every layer at the final image's peak)."""
+    rng = np.random.default_rng(5)
+    diffuse = rng.uniform(0.05, 0.3, (32, 32, 3))
+    faint = rng.uniform(0, 0.02, (32, 32, 3))  # specular peaking at 0.02 in an image peaking near 0.32
+    error = rng.normal(0, 0.002, faint.shape)
+    final_peak = hdr.peak(diffuse + faint)
+    own = score_layer(faint + error, faint, "specular")
+    at_view = score_layer(faint + error, faint, "specular", reference=final_peak)
+    assert at_view["peak_specular"] == pytest.approx(faint.max())  # the layer's own max is still recorded
+    # at its own peak the error looks final_peak / 0.02 ~ 16x larger: ~24 dB lower linear PSNR
+    assert at_view["psnr_specular"] - own["psnr_specular"] == pytest.approx(20 * np.log10(final_peak / faint.max()),
+                                                                             abs=1e-6)
+    assert at_view["psnr_specular_tonemapped"] > own["psnr_specular_tonemapped"] + 3
+    # and a brighter reflection with the same absolute error scores the same linear PSNR at the same view peak
+    brighter = score_layer(faint * 5 + error, faint * 5, "specular", reference=final_peak)
+    assert brighter["psnr_specular"] == pytest.approx(at_view["psnr_specular"], rel=1e-9)

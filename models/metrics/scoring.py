@@ -6,11 +6,16 @@ view-independent radiance, so the rendered diffuse layer holds them), "specular"
 without an ``emission`` layer scores against diffuse, specular and their sum, as before.
 
 Per view and layer (``score_layer``; definitions in ``DEFINITIONS``, written into metrics.json), HDR-safe:
-``psnr_<layer>`` / ``ssim_<layer>`` linear with the ground truth's peak (``peak_<layer>``), the headline
-``psnr_<layer>_tonemapped`` / ``ssim_<layer>_tonemapped`` after mu-law on radiance / peak (``models.metrics.hdr``);
+``psnr_<layer>`` / ``ssim_<layer>`` linear at the view's reference peak (``peak``: the maximum of its ground-truth
+final image, the same for every layer), the headline ``psnr_<layer>_tonemapped`` / ``ssim_<layer>_tonemapped``
+after mu-law on radiance / peak (``models.metrics.hdr``). One peak per view, not one per layer: a layer is a
+part of one image, and a view with almost no reflection (specular peak 0.02 in an image peaking at 0.29) would
+otherwise have its specular errors magnified 15 times over what they are in the picture (``peak_<layer>`` still
+records each layer's own maximum);
 for comparison with LDR numbers ``psnr_<layer>_clamped`` (clamp to [0, 1], peak 1) and ``psnr_<layer>_srgb`` /
 ``ssim_<layer>_srgb`` (clamp + sRGB curve, the PNGs); ``saturated`` lists the views and layers where a score
-has stopped measuring (``hdr.saturation``).
+has stopped measuring (``hdr.saturation``). With LPIPS weights (``lpips.load_lpips``, the evaluate stage's
+``evaluate.lpips``) also ``lpips_<layer>`` on the same sRGB images; ``lpips`` says which weights, or how to turn it on.
 """
 
 from __future__ import annotations
@@ -25,18 +30,24 @@ from models.capture.layers import SCORED, diffuse_radiance
 
 from . import hdr
 from .image import SSIM_DEFINITION, psnr, ssim
+from .lpips import MIN_SIZE as LPIPS_MIN_SIZE
+from .lpips import LpipsWeights, lpips_images
 
 DEFINITIONS = {
-    "psnr_<layer>": "linear radiance, no clamp, peak = peak_<layer> (max of the view's ground-truth layer over "
-                    "pixels and channels; 1 if that is not positive)",
-    "ssim_<layer>": "SSIM of linear radiance, no clamp, data range L = peak_<layer>",
-    "psnr_<layer>_tonemapped": "headline: PSNR-mu, mu-law (mu = 5000) of radiance / peak_<layer>, no clamp "
+    "peak": "the view's reference peak: max of its ground-truth final image (diffuse + specular + emission) over "
+            "pixels and channels, 1 if that is not positive; every layer of the view is scored at it",
+    "peak_<layer>": "max of the view's ground-truth layer (information only; scores use peak)",
+    "psnr_<layer>": "linear radiance, no clamp, at the view's peak",
+    "ssim_<layer>": "SSIM of linear radiance, no clamp, data range L = the view's peak",
+    "psnr_<layer>_tonemapped": "headline: PSNR-mu, mu-law (mu = 5000) of radiance / the view's peak, no clamp "
                                "(Kalantari & Ramamoorthi 2017), peak 1",
     "ssim_<layer>_tonemapped": "headline: SSIM of the same mu-law images, L = 1",
     "psnr_<layer>_clamped": "radiance clamped to [0, 1], peak 1 (psnr_<layer> before HDR-safe scoring; blind above 1)",
     "psnr_<layer>_srgb": "clamp to [0, 1] + sRGB curve, as the PNGs (psnr_<layer>_tonemapped before; blind above 1)",
     "ssim_<layer>_srgb": "SSIM of the same sRGB images, L = 1 (ssim_<layer>_tonemapped before)",
-    "<region>_psnr_<layer>": "as psnr_<layer> (the whole view's peak) on the region's pixels",
+    "lpips_<layer>": "LPIPS v0.1, AlexNet (Zhang et al. 2018), of the clamp + sRGB images (as ssim_<layer>_srgb) "
+                     "mapped to [-1, 1]; lower is better; only with evaluate.lpips (see 'lpips')",
+    "<region>_psnr_<layer>": "as psnr_<layer> (the view's peak) on the region's pixels",
     "ssim": SSIM_DEFINITION,
     "saturated": f"views / layers where > {hdr.SATURATED_FRACTION:.0%} of ground-truth pixels exceed 1 (the clamped "
                  f"scores ignore errors there) or a PSNR is > {hdr.SATURATED_DB:.0f} dB or not finite",
@@ -56,10 +67,12 @@ def ground_truth_names(capture: Capture) -> dict[str, str]:
     return {"diffuse": f"diffuse{plus}", "specular": "specular", "final": f"diffuse + specular{plus}"}
 
 
-def score_layer(pred: np.ndarray, target: np.ndarray, layer: str) -> dict[str, float]:
+def score_layer(pred: np.ndarray, target: np.ndarray, layer: str, reference: float | None = None) -> dict[str, float]:
     """Every score of one layer of one view (keys of ``DEFINITIONS`` with ``<layer>`` filled in), plus
-    ``peak_<layer>`` and ``over1_<layer>`` (fraction of ground-truth pixels above 1)."""
-    top = hdr.peak(target)
+    ``peak_<layer>`` (the layer's own maximum) and ``over1_<layer>`` (fraction of ground-truth pixels above 1).
+    ``reference``: the peak the linear and tonemapped scores are taken at (the view's ``peak``; default: the
+    layer's own)."""
+    top = hdr.peak(target) if reference is None else reference
     mp, mt = hdr.mu_law(pred, top), hdr.mu_law(target, top)
     sp, st = linear_to_srgb(pred), linear_to_srgb(target)
     return {
@@ -70,7 +83,7 @@ def score_layer(pred: np.ndarray, target: np.ndarray, layer: str) -> dict[str, f
         f"psnr_{layer}_clamped": psnr(np.clip(pred, 0, 1), np.clip(target, 0, 1)),
         f"psnr_{layer}_srgb": psnr(sp, st),
         f"ssim_{layer}_srgb": ssim(sp, st),
-        f"peak_{layer}": top,
+        f"peak_{layer}": hdr.peak(target),
         f"over1_{layer}": hdr.over_one(target),
     }
 
@@ -84,22 +97,35 @@ def region_mask(view, box_min, box_max) -> np.ndarray:
     return inside
 
 
-def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = None) -> dict:
+LPIPS_OFF = ("not computed: LPIPS needs local weight files (nothing is downloaded); turn it on with evaluate.lpips: "
+             "{backbone: <torchvision AlexNet state dict, alexnet-owt-7be5be79.pth>, lin: <the lpips package's "
+             "weights/v0.1/alex.pth>} in the scene config, snakemake --config or stages.evaluate --config-json")
+
+
+def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = None,
+                     lpips: LpipsWeights | None = None) -> dict:
     """Per-view and mean metrics (module docstring); ``regions``: name -> {min: [x, y, z], max: [x, y, z]} world
     boxes, each scored (PSNR per layer, linear, the view's peak) on the pixels whose ground-truth surface is
-    inside it. ``saturated``: [{view, layer, reasons}] (empty when every score measures something)."""
+    inside it. ``saturated``: [{view, layer, reasons}] (empty when every score measures something). ``lpips``:
+    weights (``models.metrics.lpips.load_lpips``) to add ``lpips_<layer>`` on the clamped sRGB images."""
     per_view, saturated = {}, []
     for view in capture.split("test"):
+        if lpips is not None and min(view.camera.height, view.camera.width) < LPIPS_MIN_SIZE:
+            raise ValueError(f"LPIPS (AlexNet) needs views of at least {LPIPS_MIN_SIZE} x {LPIPS_MIN_SIZE} pixels; "
+                             f"test view {view.name!r} is {view.camera.width} x {view.camera.height} (leave "
+                             "evaluate.lpips unset for it)")
         exr = renders / f"{view.name}.exr"
         if not exr.is_file():
             raise FileNotFoundError(f"render of test view {view.name!r} missing: {exr}")
         pred = read_view_buffers(exr, view.camera.height, view.camera.width)
         gt = ground_truth(view.buffers)
         pred = {"diffuse": pred["diffuse"], "specular": pred["specular"], "final": pred["rgb"]}
-        row = {}
+        row = {"peak": hdr.peak(gt["final"])}
         for layer in SCORED:
-            scores = score_layer(pred[layer], gt[layer], layer)
+            scores = score_layer(pred[layer], gt[layer], layer, reference=row["peak"])
             row.update(scores)
+            if lpips is not None:
+                row[f"lpips_{layer}"] = lpips_images(linear_to_srgb(pred[layer]), linear_to_srgb(gt[layer]), lpips)
             reasons = hdr.saturation({k: v for k, v in scores.items() if k.startswith("psnr_")},
                                      scores[f"over1_{layer}"])
             if reasons:
@@ -109,10 +135,10 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
             row[f"{name}_pixels"] = int(m.sum())
             for layer in SCORED:
                 if m.any():
-                    row[f"{name}_psnr_{layer}"] = psnr(pred[layer], gt[layer], m, peak=row[f"peak_{layer}"])
+                    row[f"{name}_psnr_{layer}"] = psnr(pred[layer], gt[layer], m, peak=row["peak"])
         per_view[view.name] = row
     keys = dict.fromkeys(k for r in per_view.values() for k in r)
     mean = {k: float(np.mean([r[k] for r in per_view.values() if k in r])) for k in keys}
     return {"mean": mean, "views": per_view, "saturated": saturated,
             "ground_truth": ground_truth_names(capture), "definitions": DEFINITIONS,
-            "lpips": "not computed: LPIPS needs network weights that cannot be fetched here"}
+            "lpips": f"{lpips.describe()}, on clamped sRGB" if lpips is not None else LPIPS_OFF}

@@ -15,7 +15,8 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m stages.evaluate",
         description="PSNR and SSIM per layer (diffuse, specular, final) of <renders>/test/*.exr against the "
         "capture's test views (ground truth final = diffuse + specular + emission, diffuse = diffuse + emission, "
-        "when the capture has an emission layer): linear with the ground truth's peak (peak_<layer>), mu-law "
+        "when the capture has an emission layer): linear at the view's peak (its ground-truth final image's maximum, "
+        "the same for every layer), mu-law "
         "tonemapped (the headline), and, blind above 1, clamped and clamp + sRGB curve (as the PNGs); SSIM as 3DGS; "
         "'saturated' lists scores that stopped measuring (models/metrics/scoring.py DEFINITIONS). Adds training "
         "time, Gaussian count, peak memory and the training decisions from the model's stage.json, render time "
@@ -28,28 +29,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, type=Path, help="metrics.json path")
     p.add_argument("--fps-repeats", type=int, default=3,
                    help="timed frames for render FPS at 1 spp (needs --model; 0 = skip)")
-    p.add_argument("--device", default="cpu", help="cpu | cuda (FPS measurement)")
+    p.add_argument("--device", default="cpu", help="cpu | cuda (FPS measurement, LPIPS)")
     p.add_argument("--threads", type=int, default=2, help="CPU tracer threads (FPS measurement)")
-    p.add_argument("--config-json", default="{}", help="the 'evaluate' section as JSON: {regions: {name: {min, max}}}")
+    p.add_argument("--config-json", default="{}", help="the 'evaluate' section as JSON: {regions: {name: {min, max}}, "
+                   "lpips: {backbone: <torchvision alexnet-owt-7be5be79.pth>, lin: <lpips weights/v0.1/alex.pth>}} "
+                   "(lpips: LPIPS v0.1 AlexNet from these local files, lpips_<layer> on the clamped sRGB images; "
+                   "default off)")
     args = p.parse_args(argv)
     single_threaded_torch()
     from models.capture import CaptureError, read_capture  # after parsing: --help answers without torch / Warp
     from models.metrics import evaluate_renders
+    from models.metrics.lpips import load_lpips
     from models.rendering import measure_fps
     from models.trained import GAUSSIANS_FILE, read_settings
 
     try:
         section = json.loads(args.config_json)
-        unknown = set(section) - {"regions"}
+        unknown = set(section) - {"regions", "lpips"}
         if unknown:
-            raise ValueError(f"unknown evaluate option(s) {sorted(unknown)}; known: ['regions']")
+            raise ValueError(f"unknown evaluate option(s) {sorted(unknown)}; known: ['lpips', 'regions']")
+        lpips = None
+        if section.get("lpips") is not None:
+            lpips = load_lpips(**lpips_files(section["lpips"])).to(args.device)
         capture = read_capture(args.capture, layers=["diffuse", "specular", "emission", "depth", "mask"])
         if not capture.split("test"):
             raise CaptureError(f"{args.capture}: the capture has no test views, nothing to score the renders "
                                "against; mark some frames \"split\": \"test\" in its transforms.json (photos: "
                                "poses.test_every > 0; synthetic: synth.cameras.test.count > 0)")
         check_renders(args.renders, args.model)
-        metrics = evaluate_renders(capture, args.renders / "test", section.get("regions"))
+        metrics = evaluate_renders(capture, args.renders / "test", section.get("regions"), lpips)
     except (CaptureError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -85,6 +93,14 @@ def main(argv: list[str] | None = None) -> int:
     for s in metrics["saturated"]:
         print(f"warning: saturated score, view {s['view']} {s['layer']}: {'; '.join(s['reasons'])}", file=sys.stderr)
     return 0
+
+
+def lpips_files(option) -> dict[str, str]:
+    """evaluate.lpips checked: {backbone: path, lin: path}, both and nothing else."""
+    if not isinstance(option, dict) or set(option) != {"backbone", "lin"} or \
+            not all(isinstance(v, str) and v for v in option.values()):
+        raise ValueError(f"evaluate.lpips must be {{backbone: <path>, lin: <path>}} (two local files), got {option!r}")
+    return option
 
 
 def check_renders(renders: Path, model: Path | None) -> None:

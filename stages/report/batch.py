@@ -44,18 +44,24 @@ def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report",
                 for layer in ("diffuse", "specular", "final")]
 
     saturated = [n for n in names if metrics[n].get("saturated")]
+    lpips = [n for n in names if any(k.startswith("lpips_") for k in metrics[n].get("mean", {}))]
+    lpips_note = (("LPIPS (" + "; ".join(f"{esc(n)}: {esc(metrics[n].get('lpips', '–'))}" for n in lpips) + ").")
+                  if lpips else "LPIPS is not computed: it needs local weight files (<code>evaluate.lpips</code>, "
+                  "see a scene report).")
     parts = [f"<h1>{esc(title)}</h1>",
              (f"<p class=\"note\">Run with <code>{esc(command)}</code>.</p>" if command else ""),
              "<h2>Table 1: disentanglement (PSNR, dB, test views)</h2>",
              _grouped_table(names, [("Ours (g.t. inputs), tonemapped", row("psnr_{}_tonemapped")),
                                     ("Ours (g.t. inputs), linear", row("psnr_{}")),
-                                    ("Ours (g.t. inputs), sRGB (clamped)", row("psnr_{}_srgb"))]),
-             "<p class=\"note\">Tonemapped (headline): mu-law (mu = 5000) of radiance / the ground truth's peak, no "
-             "clamp; linear: no clamp, PSNR at the ground truth's peak (<code>peak_&lt;layer&gt;</code> in each "
-             "metrics.json); sRGB: clamp to [0, 1] + sRGB curve, as the PNGs (blind above 1). Ground-truth final = "
+                                    ("Ours (g.t. inputs), sRGB (clamped)", row("psnr_{}_srgb"))]
+                            + ([("LPIPS, sRGB (lower is better)", [fmt(v, 4) for v in row("lpips_{}")])]
+                               if lpips else [])),
+             "<p class=\"note\">Tonemapped (headline): mu-law (mu = 5000) of radiance / the view's peak (the "
+             "ground-truth final image's maximum, the same for every layer: <code>peak</code> in each metrics.json), no "
+             "clamp; linear: no clamp, PSNR at that peak; sRGB: clamp to [0, 1] + sRGB curve, as the PNGs (blind above 1). Ground-truth final = "
              "diffuse + specular + emission, diffuse = diffuse + emission, where a capture has emission. Our scenes "
              "are rendered by the <code>synth</code> stage with exact buffers (the paper's \"g.t. inputs\" setting). "
-             "LPIPS is not computed: it needs network weights that cannot be fetched here."
+             + lpips_note
              + (f" <b>Saturated scores</b> (see the scene reports): {esc(', '.join(saturated))}." if saturated else "")
              + "</p>",
              "<h3>For orientation: the paper's Table 1 (its scenes, GPU schedule)</h3>",

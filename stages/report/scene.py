@@ -35,9 +35,12 @@ def metrics_tables(metrics: dict) -> str:
     # (header, key with {layer}, digits): the headline (mu-law tonemapped) first, then linear at the stated peak,
     # then the LDR scores (blind above 1) for comparison with numbers measured on clamped images
     columns = [("PSNR tonemapped (dB)", "psnr_{}_tonemapped", 2), ("SSIM tonemapped", "ssim_{}_tonemapped", 3),
-               ("PSNR linear (dB)", "psnr_{}", 2), ("peak", "peak_{}", 3), ("SSIM linear", "ssim_{}", 3),
+               ("PSNR linear (dB)", "psnr_{}", 2), ("view peak", "peak", 3), ("SSIM linear", "ssim_{}", 3),
                ("PSNR clamped (dB)", "psnr_{}_clamped", 2), ("PSNR sRGB (dB)", "psnr_{}_srgb", 2),
                ("SSIM sRGB", "ssim_{}_srgb", 3)]
+    lpips = any(k.startswith("lpips_") for k in mean)  # evaluate.lpips was set
+    if lpips:
+        columns.append(("LPIPS sRGB (lower is better)", "lpips_{}", 4))
     out = table(["layer", *[c[0] for c in columns]],
                 [[layer, *[fmt(mean.get(key.format(layer)), digits) for _, key, digits in columns]]
                  for layer in COLOUR_LAYERS])
@@ -62,11 +65,12 @@ def metrics_tables(metrics: dict) -> str:
              for r in regions])
     views = metrics.get("views", {})
     if views:
+        keys = [("PSNR {} tonemapped", "psnr_{}_tonemapped"), ("PSNR {} linear", "psnr_{}")]
+        keys += [("LPIPS {}", "lpips_{}")] if lpips else []
         out += "<h3>Per view</h3>" + table(
-            ["view", *[f"PSNR {layer} tonemapped" for layer in COLOUR_LAYERS],
-             *[f"PSNR {layer} linear" for layer in COLOUR_LAYERS]],
-            [[name, *[row.get(f"psnr_{layer}_tonemapped") for layer in COLOUR_LAYERS],
-              *[row.get(f"psnr_{layer}") for layer in COLOUR_LAYERS]] for name, row in views.items()])
+            ["view", *[head.format(layer) for head, _ in keys for layer in COLOUR_LAYERS]],
+            [[name, *[fmt(row.get(key.format(layer)), 4 if key.startswith("lpips") else 2) for _, key in keys
+                      for layer in COLOUR_LAYERS]] for name, row in views.items()])
     return out
 
 

@@ -48,12 +48,14 @@ rule render:
 
 
 rule evaluate:
-    """PSNR / SSIM per layer on the test split (linear and tonemapped), training time, Gaussian count, peak memory,
-    render FPS at 1 spp."""
+    """PSNR / SSIM per layer on the test split (linear and tonemapped), LPIPS with evaluate.lpips, training time,
+    Gaussian count, peak memory, render FPS at 1 spp."""
     input:
         capture=f"{RESULTS}/{{scene}}/capture",
         renders=f"{RESULTS}/{{scene}}/renders",
         model=f"{RESULTS}/{{scene}}/model/model.yaml",
+        # evaluate.lpips: the local weight files (backbone, lin), when set
+        lpips=lambda wc: sorted((scene_config(wc.scene).get("evaluate", {}).get("lpips") or {}).values()),
     output:
         report(f"{RESULTS}/{{scene}}/metrics.json", caption="../report/metrics.rst", category="Scene reports",
                labels={"scene": "{scene}", "file": "metrics.json"}),
