@@ -46,6 +46,15 @@ def config_hash(section: Any) -> str:
     return hashlib.sha256(blob).hexdigest()[:16]
 
 
+def file_sha256(path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks (provenance of an input or weight file)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def read_yaml_mapping(path, error: type[Exception] = ValueError) -> dict:
     """The mapping of the YAML file ``path`` ({} when empty); ``error`` naming the file when it is not YAML or
     not a mapping at top level."""

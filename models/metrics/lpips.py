@@ -14,13 +14,14 @@ features over channels (x / (||x|| + 1e-10)), square their difference, weight th
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from models.settings import file_sha256
 
 # torchvision AlexNet ``features``: (state-dict prefix, in channels, out channels, kernel, stride, padding,
 # max-pool 3/2 before the conv); the ReLU after each conv is one tapped layer
@@ -33,15 +34,6 @@ SCALE = (0.458, 0.448, 0.450)
 EPS = 1e-10  # added to the feature norm
 MIN_SIZE = 31  # smaller images leave nothing for the second max-pool
 LIN_KEY = "lin{}.model.1.weight"  # the lpips package's key (index 1: after its training-time dropout)
-
-
-def sha256_12(path: Path) -> str:
-    """First 12 hex digits of the file's SHA-256."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:12]
 
 
 @dataclass(frozen=True)
@@ -99,7 +91,7 @@ def load_lpips(backbone: str | Path, lin: str | Path) -> LpipsWeights:
     sd = _state_dict(lin)
     lins = tuple(_tensor(sd, lin, LIN_KEY.format(i), (1, c, 1, 1), "LPIPS v0.1 AlexNet lin layers")
                  for i, c in enumerate(CHANNELS))
-    return LpipsWeights(convs, lins, backbone, lin, sha256_12(backbone), sha256_12(lin))
+    return LpipsWeights(convs, lins, backbone, lin, file_sha256(backbone)[:12], file_sha256(lin)[:12])
 
 
 def alexnet_features(x: torch.Tensor, convs) -> list[torch.Tensor]:

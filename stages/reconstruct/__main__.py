@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+from models.settings import file_sha256
 from stages.cli import add_config_args, load_section, single_threaded_torch
 from stages.config import ConfigError
 from stages.output import run_stage
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     except (CaptureError, ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    trainer.inputs = {"init": file_digest(args.init), "capture": capture_digest(args.capture)}
+    trainer.inputs = {"init": file_sha256(args.init), "capture": capture_digest(args.capture)}
     # the model files of an earlier run go first: until this run ends, the folder holds no model (only the
     # checkpoints it may resume from), never an old model beside new checkpoints
     for name in ("gaussians.ply", "model.yaml", "stage.json"):
@@ -73,15 +74,6 @@ def main(argv: list[str] | None = None) -> int:
     write_stage_json(args.out, "reconstruct", section, time.perf_counter() - start, device=args.device,
                      extra={"decisions": trainer.decisions, "final": metrics, "resumed_from_step": resumed})
     return 0
-
-
-def file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes (what a checkpoint was trained from)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def capture_digest(folder: Path) -> str:
