@@ -427,7 +427,7 @@ def test_cuda_kernels_compile_with_nvrtc():
     assert os.path.getsize(files[0]) > 10_000
 
 
-def test_prepare_kernel_matches_torch_activations_and_bounds_contain_boxes():
+def test_prepare_kernel_matches_torch_activations_and_bounds_are_the_ellipsoids():
     from models.gaussians import quats_to_rotmats
     from models.tracer._torch_impl import cutoff_radius
 
@@ -442,13 +442,21 @@ def test_prepare_kernel_matches_torch_activations_and_bounds_contain_boxes():
     torch.testing.assert_close(rec[:, 3:12].reshape(-1, 3, 3), g64.world_to_local(), atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(rec[:, 12], g64.opacities(), atol=1e-6, rtol=0)
     torch.testing.assert_close(rec[:, 13], s, atol=1e-5, rtol=1e-5)
-    # the 8 corners of every oriented box lie inside its world AABB
     lo = torch.from_numpy(tracer.bvh.lowers.numpy()).double()
     hi = torch.from_numpy(tracer.bvh.uppers.numpy()).double()
-    signs = torch.tensor([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], dtype=torch.float64)
     axes = quats_to_rotmats(g64.quats) * torch.exp(g64.log_scales)[:, None, :]          # R S
-    corners = g64.means[:, None] + torch.einsum("nij,kj->nki", axes, signs) * s[:, None, None]
-    assert (corners >= lo[:, None] - 1e-5).all() and (corners <= hi[:, None] + 1e-5).all(), f"seed {seed}"
+    # the ellipsoid's extreme point along each world axis i: mean +- s (R S) (R S)^T e_i / |row i| lies in the
+    # AABB, and touches it (the bound is tight: not the oriented cube's, up to sqrt(3) wider)
+    rows = axes.norm(dim=2)                                                               # [N, 3]
+    extreme = torch.einsum("nij,nkj->nki", axes, axes / rows[..., None]) * s[:, None, None]  # [N, axis, 3]
+    top, bottom = g64.means[:, None] + extreme, g64.means[:, None] - extreme
+    assert (top <= hi[:, None] + 1e-5).all() and (bottom >= lo[:, None] - 1e-5).all(), f"seed {seed}"
+    half = (hi - lo) / 2
+    torch.testing.assert_close(half, rows * s[:, None], rtol=1e-4, atol=1e-6)
+    # random points of the ellipsoid's surface too
+    u = torch.nn.functional.normalize(torch.randn(100, 64, 3, dtype=torch.float64), dim=-1)
+    pts = g64.means[:, None] + torch.einsum("nij,nkj->nki", axes, u) * s[:, None, None]
+    assert (pts >= lo[:, None] - 1e-5).all() and (pts <= hi[:, None] + 1e-5).all(), f"seed {seed}"
 
 
 # ---------------------------------------------------------------- stretch: ordered traversal

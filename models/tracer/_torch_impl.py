@@ -14,7 +14,7 @@ from models.tracer.output import TraceOutput
 
 
 def cutoff_radius(opacities: torch.Tensor, p: int, alpha_min: float) -> torch.Tensor:
-    """Opacity-adaptive box half-size s = (2p ln(opacity / alpha_min))^(1/(2p)); 0 when
+    """Opacity-adaptive cut-off radius s (local units: alpha > alpha_min exactly inside |x_l| < s) = (2p ln(opacity / alpha_min))^(1/(2p)); 0 when
     opacity <= alpha_min (masked out). [N] -> [N]."""
     ratio = torch.log(opacities.clamp_min(alpha_min) / alpha_min)
     return torch.where(opacities > alpha_min, (2 * p * ratio).clamp_min(0) ** (1.0 / (2 * p)),
@@ -26,7 +26,7 @@ def evaluate_hits(origins, dirs, means, w2l, opacities, config: TracerConfig):
 
     origins, dirs: [R, 3]; means: [N, 3]; w2l: [N, 3, 3]; opacities: [N].
     Returns t [R, N], alpha [R, N] (clamped), valid [R, N] and the raw pieces used for
-    ambiguity checks (unclamped alpha, |p|_inf, cutoff s).
+    ambiguity checks (unclamped alpha, |q| of the local closest point, cutoff s).
     """
     p = config.kernel_p
     o_l = torch.einsum("nij,rnj->rni", w2l, origins[:, None, :] - means[None])  # [R, N, 3]
@@ -40,9 +40,9 @@ def evaluate_hits(origins, dirs, means, w2l, opacities, config: TracerConfig):
     raw_alpha = opacities[None] * response
     alpha = raw_alpha.clamp(max=config.alpha_max)
     s = cutoff_radius(opacities, p, config.alpha_min)
-    box = closest.abs().amax(-1)
-    valid = (alpha > config.alpha_min) & (box <= s[None]) & (t > config.t_min) & (s[None] > 0)
-    return t, alpha, valid, raw_alpha, box, s
+    radius = r2.sqrt()  # in the cut-off ellipsoid: |q| <= s (implied by alpha > alpha_min but for rounding)
+    valid = (alpha > config.alpha_min) & (radius <= s[None]) & (t > config.t_min) & (s[None] > 0)
+    return t, alpha, valid, raw_alpha, radius, s
 
 
 def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussians,
@@ -51,7 +51,7 @@ def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussi
     """Trace R rays through all Gaussians. origins, dirs: [R, 3] (any non-zero dirs).
 
     Returns TraceOutput; with return_ambiguous also a bool [R] marking rays with a
-    decision (alpha vs alpha_min, T vs threshold, order of two hits, t vs t_min, box)
+    decision (alpha vs alpha_min, T vs threshold, order of two hits, t vs t_min, ellipsoid)
     within ambiguity_eps of flipping, where a float32 kernel may legitimately differ.
     ambiguity_scope "blended": only the decisions up to the first accepted hit left unblended count (beyond it
     a flip changes neither the outputs nor the tail rule, only the count of accepted hits); for rays with
@@ -84,7 +84,7 @@ def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussi
 
 def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps, scope="all"):
     r, n = origins.shape[0], means.shape[0]
-    t, alpha, valid, raw_alpha, box, s = evaluate_hits(origins, dirs, means, w2l, opac, config)
+    t, alpha, valid, raw_alpha, radius, s = evaluate_hits(origins, dirs, means, w2l, opac, config)
     # sort accepted hits by t; rejected ones go to the end with alpha 0
     key = torch.where(valid, t.detach(), torch.full_like(t, float("inf")))
     key_sorted, order = torch.sort(key, dim=1, stable=True)
@@ -115,7 +115,7 @@ def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps, scope="all
             relevant_s = torch.arange(n, device=t.device)[None] <= n_blended[:, None].long()
         cand = (s[None] > 0) & (t > config.t_min - eps) & relevant
         amb = (cand & ((raw_alpha - config.alpha_min).abs() < eps)).any(1)
-        amb |= (cand & ((box - s[None]).abs() < eps) & (raw_alpha > config.alpha_min - eps)).any(1)
+        amb |= (cand & ((radius - s[None]).abs() < eps) & (raw_alpha > config.alpha_min - eps)).any(1)
         amb |= ((raw_alpha > config.alpha_min) & ((t - config.t_min).abs() < eps) & relevant).any(1)
         amb |= (valid_s & relevant_s & ((trans - config.transmittance_threshold).abs() < eps)).any(1)
         if n > 1:

@@ -1,7 +1,8 @@
-"""BVH over the world bounds of the Gaussians' oriented boxes (wp.Bvh).
+"""BVH over the world bounds of the Gaussians' cut-off ellipsoids (wp.Bvh).
 
-Each Gaussian's box is {mean + R S u : |u|_inf <= s}, the unit cube of its local frame
-scaled by the opacity-adaptive cutoff s; its world AABB has half extents s |R S| 1.
+Each Gaussian's support is {mean + R S u : |u| <= s}, the ball of its local frame scaled by the
+opacity-adaptive cutoff s (alpha > alpha_min exactly there); its world AABB has half extent s |row i of R S|
+along axis i (prepare.py; until 2026-11 the AABB of the oriented cube |u|_inf <= s, up to sqrt(3) wider).
 Refit when only the parameters moved; rebuild when the number of Gaussians changes,
 on request, or always (ablation `always_rebuild`).
 """

@@ -95,20 +95,23 @@ def later(t: float, gid: int, t_ref: float, id_ref: int) -> int:
 
 @wp.func
 def probe_beyond(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, t_lo: float,
-                 id_lo: int) -> wp.vec2:
-    """(1 if an accepted hit lies after (t_lo, id_lo), candidates evaluated): the tail rule of a ray that became
+                 id_lo: int) -> wp.vec3:
+    """(1 if an accepted hit lies after (t_lo, id_lo), candidates evaluated, of them in their ellipsoid): the tail rule of a ray that became
     opaque exactly at the end of what was examined."""
     shift = wp.max(t_lo - margin(t_lo), 0.0)
     query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
     gid = int(0)
     found = int(0)
     cand = int(0)
+    inside = int(0)
     while found == 0 and wp.bvh_query_next(query, gid, 1.0e30):
         cand += 1
         h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
+        if h[2] > 0.0:
+            inside += 1
         if h[1] > 0.0 and later(h[0], gid, t_lo, id_lo) != 0:
             found = 1
-    return wp.vec2(float(found), float(cand))
+    return wp.vec3(float(found), float(cand), float(inside))
 
 
 @wp.func
@@ -238,6 +241,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                     found = probe_beyond(ray, o, d, g, prm, t_lo, id_lo)
                     n_acc = acc.blended + int(found[0])
                     cand += int(found[1])
+                    obb += int(found[2])
             elif m == 0:
                 delta = delta * 4.0
             else:

@@ -34,7 +34,7 @@ class TraceOutput:
     blended_count: torch.Tensor  # [R] int32 hits blended before the transmittance threshold
     # Diagnostics (Warp tracer only; None from the reference).
     candidates: torch.Tensor | None = None      # [R] int32 BVH leaves (world AABBs) visited
-    obb_candidates: torch.Tensor | None = None  # [R] int32 candidates passing the oriented-box test
+    obb_candidates: torch.Tensor | None = None  # [R] int32 candidates whose cut-off ellipsoid the ray meets
     overflow_rays: int = 0                      # rays whose replay buffer overflowed (then re-run)
     replay_capacity: int = 0                    # replay slots per ray used by the final launch
     extra: dict = field(default_factory=dict)

@@ -31,7 +31,7 @@ class TraceParams:
     t_min: float
     k: int                    # hits per integration round
     capacity: int             # replay slots per ray
-    obb_test: int             # 1: slab test against the oriented box before evaluating
+    obb_test: int             # 1: test the cut-off ellipsoid (|q| <= s) before the response
     traversal: int            # index into config.TRAVERSALS: 0 interval, 1 single, 2 kbuffer, 3 ordered
     window: float             # interval: first window length (world units; divided by |d| per ray)
     scene_lo: wp.vec3         # interval: the scene box (union of the Gaussians' world bounds)
@@ -61,7 +61,7 @@ class RayOutputs:
     hit_count: wp.array(dtype=wp.int32)   # [R] accepted hits
     blended: wp.array(dtype=wp.int32)     # [R] blended hits
     candidates: wp.array(dtype=wp.int32)  # [R] BVH leaves visited (first traversal)
-    obb_candidates: wp.array(dtype=wp.int32)  # [R] candidates passing the oriented-box test
+    obb_candidates: wp.array(dtype=wp.int32)  # [R] candidates whose cut-off ellipsoid the ray meets
     needed: wp.array(dtype=wp.int32)      # [R] replay slots needed when overflowing, else 0
 
 

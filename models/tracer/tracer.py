@@ -105,7 +105,7 @@ class Tracer:
 
     # ------------------------------------------------------------------ BVH
     def update(self, gaussians: Gaussians, rebuild: bool = False) -> None:
-        """Recompute the oriented-box bounds; refit the BVH, or rebuild it when the number of
+        """Recompute the ellipsoid bounds; refit the BVH, or rebuild it when the number of
         Gaussians changed, `rebuild` is set or config.always_rebuild."""
         if not isinstance(gaussians, Gaussians):
             raise TypeError(f"gaussians must be a Gaussians, got {type(gaussians).__name__}")

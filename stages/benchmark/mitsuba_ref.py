@@ -3,8 +3,8 @@
 Mitsuba's ``ellipsoids`` shape (Embree on the CPU, OptiX on CUDA) with the loop of its ``volprim_rf_basic``
 integrator (one closest-shell query per primitive, the ray moved past it each time), evaluating OUR kernel
 exp(-r^(2p) / (2p)), opacity, alpha_min / alpha_max and transmittance threshold on the diffuse colours. Each
-Gaussian's shell is its cutoff ellipsoid (local radius s = (2p ln(opacity / alpha_min))^(1/(2p)), the half-size
-of our oriented box), so both see the same Gaussians. Mitsuba composites in shell-ENTRY order (ours: by the
+Gaussian's shell is its cutoff ellipsoid (local radius s = (2p ln(opacity / alpha_min))^(1/(2p)), the support
+our BVH bounds), so both see the same Gaussians. Mitsuba composites in shell-ENTRY order (ours: by the
 max-response point t*) and, like every ``ellipsoids`` integrator, skips shells that contain the ray origin
 (backface culling): its image differs from ours there, its cost is what is compared.
 """
