@@ -166,3 +166,32 @@ def test_extremes_finite_values_and_gradients(roughness, f0, log_scale):
         assert bounce.max() <= g.diffuse.max() + 1e-5
     for name, p in g.params().items():
         assert torch.isfinite(p.grad).all(), name
+
+
+@pytest.mark.parametrize("f0", [0.002, 0.05, 0.9])
+def test_min_throughput_stops_only_paths_below_it(f0):
+    """One bounce (one draw: the same directions with and without the cut-off): a path is stopped exactly where its
+    throughput F(n.wo) is below min_throughput; it loses at most min_throughput x the radiance it would have read,
+    every other path is unchanged, and ``stopped`` counts it with its weight."""
+    g = scene(mirror_f0=f0)
+    o, d = camera_rays()
+    threshold = 0.04
+    full = trace_paths(reference_fn(), o, d, g, PathConfig(max_path_length=2), torch.Generator().manual_seed(0))
+    cut = trace_paths(reference_fn(), o, d, g, PathConfig(max_path_length=2, min_throughput=threshold),
+                      torch.Generator().manual_seed(0))
+    # Schlick F at the mirror (perfect mirror: the throughput of the bounce), for every camera ray
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype)
+    cos = (-d @ n).clamp(0, 1)
+    schlick = f0 + (1 - f0) * (1 - cos) ** 5
+    low = full.alive[0] & (schlick < threshold)
+    assert torch.equal(cut.alive[0], full.alive[0] & ~low)
+    assert torch.equal(cut.specular[~low], full.specular[~low])
+    assert (cut.specular[low] == 0).all()
+    assert ((full.specular - cut.specular).abs() <= threshold * g.diffuse.amax() + 1e-12).all()
+    count, stopped_weight, weight = cut.stopped[0].tolist()
+    assert count == int(low.sum())
+    assert stopped_weight == pytest.approx(float(schlick[low].sum()), rel=1e-9, abs=1e-12)
+    assert weight == pytest.approx(float(schlick[full.alive[0]].sum()), rel=1e-9)
+    assert low.any() == (f0 < threshold) and not full.stopped  # (the default cuts nothing, records nothing)
+    with pytest.raises(ValueError, match="min_throughput"):
+        PathConfig(min_throughput=1.0)

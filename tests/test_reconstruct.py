@@ -64,6 +64,12 @@ def test_training_loss_falls_and_psnr_rises(demo, tmp_path):
     after = view_psnr(trainer, test_rays)
     assert after > before + 2 and after > 20, (before, after)  # held-out views, diffuse layer
     assert any("psnr_specular" in l for l in lines)  # reflections switched on after warm-up
+    # paths under min_throughput are not traced in training (counted, with their tiny share of the gradient
+    # weight), while the model renders every path
+    reflected = [l for l in lines if "psnr_specular" in l]
+    assert all(l["paths_stopped"] >= 0 and 0 <= l["stopped_weight"] < 0.05 for l in reflected)
+    assert trainer.settings().path.min_throughput == 0 and trainer.config.min_throughput == 0.01
+    assert any("paths stop below throughput 0.01 in training" in d for d in trainer.decisions)
     for name, p in trainer.params.items():
         assert torch.isfinite(p).all(), name
 

@@ -41,10 +41,14 @@ class PathConfig:
     # along the ray, not the normal, so the reflected line is exact (a flat mirror gives the mirrored image)
     sampler: str = "vndf"  # vndf (visible normals, default) | ndf (half-vector, as the reference)
     grad_roughness_power: float = 3.0  # bounce gradients scaled by (1 - roughness_prev)^power
+    min_throughput: float = 0.0  # a path stops where its throughput (max over RGB) falls below this: 0 = never
+    # (renders: the estimate is exact in expectation); training sets it (ReconstructConfig.min_throughput)
 
     def __post_init__(self) -> None:
         if self.max_path_length < 1:
             raise ValueError(f"max_path_length must be >= 1, got {self.max_path_length}")
+        if not 0.0 <= self.min_throughput < 1.0:
+            raise ValueError(f"min_throughput must be in [0, 1), got {self.min_throughput}")
         if self.sampler not in ("vndf", "ndf"):
             raise ValueError(f"sampler must be 'vndf' or 'ndf', got {self.sampler!r}")
 
@@ -55,6 +59,9 @@ class PathOutput:
     specular: torch.Tensor  # [R, 3] sum over reflection segments of throughput x diffuse cache
     bounces: list[torch.Tensor] = field(default_factory=list)  # [R, 3] per reflection segment (sum = specular)
     alive: list[torch.Tensor] = field(default_factory=list)  # [R] bool, paths still going at each bounce
+    # per bounce, paths stopped by min_throughput: [count, sum of their throughput, sum over every path that could
+    # have gone on] (tensors, no read-back; the last two give the share of the gradient weight not traced)
+    stopped: list[torch.Tensor] = field(default_factory=list)
 
     @property
     def diffuse(self) -> torch.Tensor:
@@ -120,6 +127,14 @@ def trace_paths(
         weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o), weight)
         valid = torch.where(mirror, cos_o > 0, valid)
         keep = keep & valid & (weight.amax(-1) > 0)
+        if config.min_throughput > 0:
+            # the bounce's value and its gradient (to the Gaussians it hits) are both proportional to the throughput:
+            # a path below min_throughput carries at most that share of a mirror's gradient; not traced
+            reach = (throughput * weight.detach()).amax(-1)
+            low = keep & (reach < config.min_throughput)
+            out.stopped.append(torch.stack([low.sum().to(reach.dtype), torch.where(low, reach, 0.0).sum(),
+                                            torch.where(keep, reach, 0.0).sum()]))
+            keep = keep & ~low
         live = keep.nonzero().reshape(-1)  # the one read-back of a bounce; rows are gathered by index after it
         alive = torch.zeros(rays, dtype=torch.bool, device=origins.device)
         alive[index[live]] = True

@@ -125,8 +125,10 @@ class Trainer:
             log.warning(message)
             self.decisions.append(message)
             return False
+        stop = (f", paths stop below throughput {self.config.min_throughput:g} in training (paths_stopped and "
+                "stopped_weight in the log)" if self.config.min_throughput > 0 else "")
         self.decisions.append(f"reflections: on after step {self.config.warmup}, "
-                              f"max path length {self.config.max_path_length}")
+                              f"max path length {self.config.max_path_length}{stop}")
         return True
 
     def _needs_far_field(self, init: Gaussians) -> bool:
@@ -235,7 +237,7 @@ class Trainer:
     def losses(self, batch: RaySet, reflections: bool) -> tuple[torch.Tensor, dict]:
         g = self.gaussians()
         self.backend.update(g)
-        path_cfg = (self.config.path(self.scene_size) if reflections
+        path_cfg = (self.config.training_path(self.scene_size) if reflections
                     else PathConfig(max_path_length=1, sampler=self.config.sampler))
         with self.timer.section("path_sampling"):
             out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
@@ -267,8 +269,12 @@ class Trainer:
         if reflections and "specular" in batch.targets:
             names.append("mse_specular")
             values.append(_mse(out.specular, batch.targets["specular"]))
+        if out.stopped:  # paths stopped by min_throughput: how many, and their share of the bounce gradient weight
+            stopped = torch.stack(out.stopped).sum(0)
+            names += ["paths_stopped", "stopped_weight"]
+            values += [stopped[0], stopped[1] / stopped[2].clamp_min(1e-12)]
         host = dict(zip(names, torch.stack([v.detach().double() for v in values]).tolist()))  # one read-back
-        metrics = {k: v for k, v in host.items() if not k.startswith("mse_")}
+        metrics = {k: (round(v, 6) if k == "stopped_weight" else v) for k, v in host.items() if not k.startswith("mse_")}
         for k in ("diffuse", "specular"):
             if f"mse_{k}" in host:
                 metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])
@@ -337,7 +343,7 @@ class Trainer:
         with ``reflections``, plus its weight in the traced reflections (d sum(specular_R) / d diffuse_i,R:
         bounce Gaussians are the radiance cache), so what the views see only in mirrors is kept too."""
         acc = torch.zeros(len(self.params["means"]), device=self.device)
-        path_cfg = self.config.path(self.scene_size)
+        path_cfg = self.config.training_path(self.scene_size)
         for v in views:
             g = Gaussians(**{k: p.detach().clone().requires_grad_(k == "diffuse") for k, p in self.params.items()})
             self.backend.update(g)
