@@ -243,7 +243,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                     cand += int(found[1])
                     obb += int(found[2])
             elif m == 0:
-                delta = delta * 2.0  # (x4 overshot dense stretches: the deep random scene examined 2.6x more)
+                delta = delta * 4.0  # (empty space is skipped in few queries; x2 cost the demo's rooms ~20%)
             else:
                 # the next window: the length that takes T to the threshold at this window's optical-depth rate
                 # (measured from its first hit), x1/4 .. x2 of this one
