@@ -29,7 +29,7 @@ class TracerConfig:
                              "(ablation); kbuffer: 3DGRT-style re-traversal per round of k hits (ablation); "
                              "ordered: own BVH traversed best-first (ablation)",
                              enum=["interval", "single", "kbuffer", "ordered"])
-    window: float = setting(2.0, "interval traversal: first window length, in median Gaussian box diagonals (then "
+    window: float = setting(1.0, "interval traversal: first window length, in median Gaussian box diagonals (then "
                             "sized per ray from the optical depth seen so far)", exclusiveMinimum=0)
     replay_capacity: int = setting(64, "replay buffer slots per ray at start (the blended hits, kept for the "
                                    "backward, plus the window being sorted); grows when a ray needs more",
