@@ -274,7 +274,8 @@ class Trainer:
             names += ["paths_stopped", "stopped_weight"]
             values += [stopped[0], stopped[1] / stopped[2].clamp_min(1e-12)]
         host = dict(zip(names, torch.stack([v.detach().double() for v in values]).tolist()))  # one read-back
-        metrics = {k: (round(v, 6) if k == "stopped_weight" else v) for k, v in host.items() if not k.startswith("mse_")}
+        metrics = {k: (round(v, 6) if k == "stopped_weight" else v) for k, v in host.items()
+                   if not k.startswith("mse_")}
         for k in ("diffuse", "specular"):
             if f"mse_{k}" in host:
                 metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])

@@ -14,8 +14,8 @@ from models.tracer.output import TraceOutput
 
 
 def cutoff_radius(opacities: torch.Tensor, p: int, alpha_min: float) -> torch.Tensor:
-    """Opacity-adaptive cut-off radius s (local units: alpha > alpha_min exactly inside |x_l| < s) = (2p ln(opacity / alpha_min))^(1/(2p)); 0 when
-    opacity <= alpha_min (masked out). [N] -> [N]."""
+    """Opacity-adaptive cut-off radius s = (2p ln(opacity / alpha_min))^(1/(2p)) in local units (alpha > alpha_min
+    exactly inside |x_l| < s); 0 when opacity <= alpha_min (masked out). [N] -> [N]."""
     ratio = torch.log(opacities.clamp_min(alpha_min) / alpha_min)
     return torch.where(opacities > alpha_min, (2 * p * ratio).clamp_min(0) ** (1.0 / (2 * p)),
                        torch.zeros_like(opacities))

@@ -38,7 +38,8 @@ class TracerConfig:
                                               "slots raises (null: no ceiling, memory permitting)", minimum=2)
     num_threads: int = setting(2, "CPU only: rays are split over this many Python threads (one Warp launch each)",
                                runtime=True, minimum=1)
-    world_aabb_only: bool = setting(False, "ablation: skip the per-candidate ellipsoid test before the response (world AABB only)")
+    world_aabb_only: bool = setting(False, "ablation: skip the per-candidate ellipsoid test before the response "
+                                    "(world AABB only)")
     always_rebuild: bool = setting(False, "ablation: rebuild the BVH on every update() instead of refitting it")
     ordered_leaf_size: int = setting(4, "traversal ordered: Gaussians per leaf of its BVH", minimum=1)
     ordered_heap_size: int = setting(128, "traversal ordered: node-heap entries per ray; a ray that needs more "

@@ -96,8 +96,8 @@ def later(t: float, gid: int, t_ref: float, id_ref: int) -> int:
 @wp.func
 def probe_beyond(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, t_lo: float,
                  id_lo: int) -> wp.vec3:
-    """(1 if an accepted hit lies after (t_lo, id_lo), candidates evaluated, of them in their ellipsoid): the tail rule of a ray that became
-    opaque exactly at the end of what was examined."""
+    """(1 if an accepted hit lies after (t_lo, id_lo), candidates evaluated, of them in their ellipsoid): the tail
+    rule of a ray that became opaque exactly at the end of what was examined."""
     shift = wp.max(t_lo - margin(t_lo), 0.0)
     query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
     gid = int(0)
