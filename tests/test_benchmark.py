@@ -35,11 +35,11 @@ def test_quick_benchmark_writes_complete_json(tmp_path, capsys):
         assert row[key] > 0, key
     assert 0 < row["refit_share"] < 1 and 0 < row["rebuild_share"] < 1
     assert set(row["forward_ms_by_threads"]) == {"1", "2"}
-    # counts: world AABB candidates >= oriented-box candidates >= accepted >= blended > 0
+    # counts: world AABB candidates >= oriented-box candidates >= found (blended + 1 if truncated) >= blended > 0
     assert row["candidates_per_ray_aabb"] >= row["candidates_per_ray_obb"] >= row["accepted_per_ray"]
     assert row["accepted_per_ray"] >= row["blended_per_ray"] > 0
     assert 0 <= row["mean_transmittance"] <= 1
-    assert row["ordered_hits_found_per_ray"] <= row["accepted_per_ray"]
+    assert row["ordered_hits_found_per_ray"] >= row["blended_per_ray"]  # (found: at least what it blends)
     assert set(row["targets_met"]) >= set(TARGETS)
     # the scene types: our default traversal blends what the single traversal blends, examines fewer Gaussians
     # than exist along the rays on the deep scenes, and Mitsuba rendered the same rays

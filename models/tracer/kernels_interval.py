@@ -13,7 +13,17 @@ and of the PyTorch reference: a hit's max-response point t* lies in its Gaussian
 consecutive windows partition t.
 
 Window length: ``TraceParams.window`` (world units: a multiple of the median Gaussian box diagonal, divided by
-|d| for the ray parameter), then sized per ray for ~16 hits at the density seen so far. Bounded working set:
+|d| for the ray parameter), then sized per ray to take T to the threshold at the optical-depth rate seen so far
+(x1/2 .. x4). After a window with no hit of its own: x4, or, when it carried hits, only as far as the nearest
+of them plus one window length (a dense stretch behind a short empty one is not swallowed whole).
+
+Opaque windows: once the hits stored in a window take T below the threshold (their product, in any order),
+the window is the ray's last. Its hits are sorted once and cut after the hit where T crosses the threshold plus
+one more (the tail rule's witness); D shrinks to that witness, so the rest of the query skips boxes entered
+beyond it, and each later hit before D is inserted in order and the cut recomputed. ``hit_count`` of a
+truncated ray is therefore ``blended + 1`` (the tail rule needs no more), the same whatever the BVH's shape.
+
+Bounded working set:
 the free replay slots after the blended prefix hold the window's hits (from the bottom) and the carried ones
 (from the top). When they meet, the carried hits are dropped first (the next window then re-examines every box
 it overlaps: skipping is only used while the carried set is complete); when the window's own hits fill the
@@ -85,6 +95,21 @@ def window_to(rep: Replay, ray: int, slot: int, shift: float):
     """A full window ends at the hit in ``slot`` (the farthest kept): its (d_t, d_id) and the query's max_dist."""
     t = rep.t[ray, slot]
     return t, rep.ids[ray, slot], t - shift + 2.0 * margin(t)
+
+
+@wp.func
+def opaque_cut(rep: Replay, ray: int, base: int, m: int, trans: float, threshold: float) -> int:
+    """Index (from base) of the first of the sorted slots after which T < threshold, blending them in order from
+    ``trans`` with the same arithmetic as blend_slot; m when T stays above it."""
+    cut = m
+    j = int(0)
+    while j < m:
+        trans = trans * (1.0 - rep.alpha[ray, base + j])
+        if trans < threshold:
+            cut = j
+            j = m
+        j += 1
+    return cut
 
 
 @wp.func
@@ -167,6 +192,10 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                 i += 1
         next_skip_ok = int(1)
         full = int(0)
+        opaque = int(0)         # the window's hits take T below the threshold: it is the ray's last
+        w_trans = acc.trans     # T behind every hit stored in this window (any order; until full)
+        for j in range(m):
+            w_trans = w_trans * (1.0 - rep.alpha[ray, base + j])
         shift = wp.max(t_lo - margin(t_lo), 0.0)
         max_dist = float(1.0e30)
         if last == 0:
@@ -178,7 +207,19 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             next_skip_ok = 0
             last = 0
             d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+        elif m > 0 and w_trans < prm.trans_threshold:
+            # the carried hits alone make the window opaque (see below)
+            sort_slots(rep, ray, base, m)
+            full = 1
+            opaque = 1
+            next_skip_ok = 0
+            cut = opaque_cut(rep, ray, base, m, acc.trans, prm.trans_threshold)
+            if cut + 2 <= m:
+                m = cut + 2
+                last = 0
+                d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
         query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
+
         gid = int(0)
         while wp.bvh_query_next(query, gid, max_dist):
             entry = slab(o, inv, prm.lowers[gid], prm.uppers[gid])[0]
@@ -194,9 +235,21 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                             if m + carried >= room and carried > 0:
                                 carried = 0  # make room: the next window re-examines what they came from
                                 next_skip_ok = 0
-                            if m < room:
+                            if opaque != 0:
+                                # the ray ends in this window: keep its sorted hits up to the cut + the tail witness
+                                if m < room:
+                                    insert_sorted(rep, ray, base, m, h[0], gid, h[1])
+                                    m += 1
+                                else:
+                                    insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
+                                cut = opaque_cut(rep, ray, base, m, acc.trans, prm.trans_threshold)
+                                if cut + 2 <= m:
+                                    m = cut + 2
+                                    d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+                            elif m < room:
                                 store(rep, ray, base + m, h[0], gid, h[1])
                                 m += 1
+                                w_trans = w_trans * (1.0 - h[1])
                                 if m == room and full == 0:
                                     # full: sort once, then keep the nearest hits and shrink the window to them
                                     sort_slots(rep, ray, base, m)
@@ -204,6 +257,19 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                     next_skip_ok = 0
                                     last = 0
                                     d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+                                elif full == 0 and w_trans < prm.trans_threshold:
+                                    # opaque: the window's hits, in any order, take T below the threshold. Sort them
+                                    # once, cut after the hit where T crosses it (plus one more hit for the tail
+                                    # rule) and shrink the window to that hit: the BVH query stops looking beyond
+                                    sort_slots(rep, ray, base, m)
+                                    full = 1
+                                    opaque = 1
+                                    next_skip_ok = 0
+                                    cut = opaque_cut(rep, ray, base, m, acc.trans, prm.trans_threshold)
+                                    if cut + 2 <= m:
+                                        m = cut + 2
+                                        last = 0
+                                        d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
                             else:
                                 insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
                                 d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
@@ -219,7 +285,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             if done == 0:
                 if acc.trans < prm.trans_threshold:
                     done = 1
-                    n_acc = acc.blended + (m - j) + carried  # accepted, never blended: the tail rule
+                    n_acc = acc.blended + 1  # an accepted hit left unblended: the tail rule (see hit_count)
                 else:
                     a = rep.alpha[ray, base + j]
                     acc = blend_slot(acc, g, rep, ray, base + j)
@@ -231,7 +297,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             skip_ok = next_skip_ok
             if skip_ok == 0:
                 carried = 0  # incomplete: the next window re-examines everything it overlaps (no duplicates)
-            n_acc = acc.blended + carried
+            n_acc = acc.blended + wp.min(carried, 1)
             if last != 0:
                 done = 1  # every hit of the ray was in this window
             elif acc.trans < prm.trans_threshold:
@@ -243,7 +309,13 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                     cand += int(found[1])
                     obb += int(found[2])
             elif m == 0:
-                delta = delta * 4.0
+                grow = delta * 4.0
+                if carried > 0:
+                    t_near = float(FAR)
+                    for i in range(carried):
+                        t_near = wp.min(t_near, rep.t[ray, cap - 1 - i])
+                    grow = wp.min(grow, wp.max(t_near - d_t, 0.0) + delta)
+                delta = grow
             else:
                 # the next window: the length that takes T to the threshold at this window's optical-depth rate
                 # (measured from its first hit), x1/2 .. x4 of this one

@@ -30,7 +30,8 @@ class TraceOutput:
     roughness: torch.Tensor      # [R]    blended perceptual roughness
     f0: torch.Tensor             # [R, 3] blended base reflectance
     transmittance: torch.Tensor  # [R]    T_end after the last blended hit (before the tail fill)
-    hit_count: torch.Tensor      # [R] int32 accepted hits (alpha > alpha_min, in box, t > t_min)
+    hit_count: torch.Tensor      # [R] int32 accepted hits (alpha > alpha_min, in box, t > t_min); the traversals
+    #                              that stop early count those found: blended + 1 on a truncated ray (interval)
     blended_count: torch.Tensor  # [R] int32 hits blended before the transmittance threshold
     # Diagnostics (Warp tracer only; None from the reference).
     candidates: torch.Tensor | None = None      # [R] int32 BVH leaves (world AABBs) visited
