@@ -198,3 +198,42 @@ def test_flat_pixels_take_the_depth_their_matched_neighbours_agree_on():
     assert got[5, 13] == -1 and got[5, 14] == -1  # at the edge: neighbours from both surfaces disagree
     assert (got[18:] == -1).all()  # no matched pixel within the radius
     assert (fill[keep] == -1).all()  # matched pixels keep their own depth
+
+
+def _complete_flat_loop(best, keep, agg, pix, shape, max_cost, radius, min_support, max_spread):
+    """The obvious per-pixel version of complete_flat (its twin)."""
+    h, w = shape
+    fill = np.full(len(pix), -1, dtype=np.int64)
+    if not keep.any() or keep.all():
+        return fill
+    ys, xs = np.divmod(pix, w)
+    grid = np.full((h, w), -1, dtype=np.int64)
+    grid[ys[keep], xs[keep]] = best[keep]
+    for i in np.nonzero(~keep)[0]:
+        patch = grid[max(ys[i] - radius, 0):ys[i] + radius + 1, max(xs[i] - radius, 0):xs[i] + radius + 1]
+        near = patch[patch >= 0]
+        if len(near) < min_support:
+            continue
+        k = int(np.median(near))
+        if np.median(np.abs(near - k)) <= max_spread and agg[i, k] < max_cost:
+            fill[i] = k
+    return fill
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_complete_flat_matches_the_per_pixel_loop(seed):
+    """The vectorised complete_flat (sliding windows, masked medians) decides every pixel as the per-pixel loop
+    does: random open-pixel subsets (image borders, even and odd neighbour counts, ties), random costs."""
+    rng = np.random.default_rng(seed)
+    h, w, depths = 23, 31, 12
+    pix = np.sort(rng.choice(h * w, size=500, replace=False))  # open pixels: not the whole image
+    best = rng.integers(0, depths, len(pix))
+    best[rng.random(len(pix)) < 0.6] = 5  # mostly one surface, so medians agree often
+    keep = rng.random(len(pix)) < 0.4
+    agg = rng.random((len(pix), depths)) * 0.4
+    for radius, min_support, spread in ((1, 2, 0.0), (3, 4, 1.0), (6, 6, 2.0)):
+        args = (best, keep, agg, pix, (h, w))
+        kw = dict(max_cost=0.2, radius=radius, min_support=min_support, max_spread=spread)
+        fast, slow = complete_flat(*args, **kw), _complete_flat_loop(*args, **kw)
+        assert np.array_equal(fast, slow), (radius, np.nonzero(fast != slow))
+        assert (slow >= 0).sum() > 5  # the case decides something

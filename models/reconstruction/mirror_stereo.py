@@ -200,17 +200,32 @@ def complete_flat(best: np.ndarray, keep: np.ndarray, agg: np.ndarray, pix: np.n
     if not keep.any() or keep.all():
         return fill
     ys, xs = np.divmod(pix, w)
-    grid = np.full((h, w), -1, dtype=np.int64)
-    grid[ys[keep], xs[keep]] = best[keep]
-    for i in np.nonzero(~keep)[0]:
-        patch = grid[max(ys[i] - radius, 0):ys[i] + radius + 1, max(xs[i] - radius, 0):xs[i] + radius + 1]
-        near = patch[patch >= 0]
-        if len(near) < min_support:
-            continue
-        k = int(np.median(near))
-        if np.median(np.abs(near - k)) <= max_spread and agg[i, k] < max_cost:
-            fill[i] = k
+    grid = np.full((h + 2 * radius, w + 2 * radius), -1, dtype=np.int64)  # padded: -1 = no decided pixel
+    grid[ys[keep] + radius, xs[keep] + radius] = best[keep]
+    windows = np.lib.stride_tricks.sliding_window_view(grid, (2 * radius + 1, 2 * radius + 1))
+    big = np.iinfo(np.int64).max
+    for part in np.array_split(np.nonzero(~keep)[0], max(1, -(-int((~keep).sum()) // 4096))):
+        near = windows[ys[part], xs[part]].reshape(len(part), -1)  # [U, (2r+1)^2] the patch around each pixel
+        valid = near >= 0
+        n = valid.sum(1)
+        ok = n >= min_support
+        k = _masked_median(np.where(valid, near, big), n).astype(np.int64)  # int(np.median(near)): floor
+        spread = _masked_median(np.where(valid, np.abs(near - k[:, None]), big), n)
+        ok &= spread <= max_spread
+        rows = part[ok]
+        good = agg[rows, k[ok]] < max_cost
+        fill[rows[good]] = k[ok][good]
     return fill
+
+
+def _masked_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Per row, the median (np.median's: the mean of the middle two for an even count) of its first ``n``
+    values after sorting; the masked-out entries hold the dtype's maximum, so they sort last. 0 where n = 0."""
+    s = np.sort(values, axis=1)
+    rows = np.arange(len(s))
+    lo = s[rows, np.maximum(n - 1, 0) // 2].astype(np.float64)
+    hi = s[rows, np.maximum(n, 1) // 2].astype(np.float64)
+    return np.where(n > 0, np.where(n % 2 == 1, lo, (lo + hi) / 2), 0.0)
 
 
 def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray, hi: np.ndarray, t_min: float,
