@@ -143,6 +143,13 @@ def test_pruning_keeps_what_the_views_see_only_in_mirrors(book):
     n_scene = len(trainer.params["means"])
     trainer.train_step()  # reflections on: adds the far field (appended: the fills are off)
     assert trainer.far_field_added
+    # none of it inside the captured room (the 0.5-99.5 % box of the scene's Gaussians): floaters for new views
+    room = trainer.params["means"][:n_scene].detach().double()
+    lo, hi = torch.quantile(room, torch.tensor([0.005, 0.995], dtype=torch.float64), dim=0)
+    shell = trainer.params["means"][n_scene:].detach().double()
+    assert len(shell) > 1000 and not ((shell >= lo) & (shell <= hi)).all(1).any()
+    cams = torch.tensor(np.stack([v.camera.origin for v in trainer.rays.views]))  # nor among the cameras
+    assert not ((shell >= cams.min(0).values) & (shell <= cams.max(0).values)).all(1).any()
     with torch.no_grad():  # as if trained: opaque walls, the back wall's Gaussians mirror-like
         trainer.params["opacity_logits"][:n_scene] = 6.0
         on_mirror = trainer.params["means"][:, 2] < -2.3

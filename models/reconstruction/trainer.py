@@ -292,28 +292,43 @@ class Trainer:
             log.warning("step %d: %s", self.step, note)
             self.decisions.append(f"step {self.step}: {note}")
 
+    def _captured_box(self, scene: Gaussians, fills: list) -> tuple[np.ndarray, np.ndarray]:
+        """Where the captured room is, which the far field must stay out of: the 0.5-99.5 % box of the scene's
+        Gaussians and of the mirror fills' (what the cameras see only in mirrors, often the half of the room
+        behind them), widened to hold every camera (they stand inside it)."""
+        means = torch.cat([scene.means.detach().double()] + [f.means.detach().double().cpu() for f in fills
+                                                              if f is not None and len(f)])
+        lo, hi = torch.quantile(means, torch.tensor([0.005, 0.995], dtype=torch.float64), dim=0).numpy()
+        cams = np.stack([v.camera.origin for v in self.rays.views])
+        return np.minimum(lo, cams.min(0)), np.maximum(hi, cams.max(0))
+
     def train_step(self) -> dict:
         cfg = self.config
         reflections = self.reflections and self.step >= cfg.warmup
         if reflections and self.far_field and not self.far_field_added:
             # the fills look at the captured scene alone: its box, and its transmittance (not the far shell's)
             scene = self.gaussians() if self.device.type == "cpu" else self.gaussians().to("cpu")
-            ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed)
+            fills = []
+            if cfg.reflection_fill_count > 0:
+                fills.append((*reflection_fill_gaussians(self.rays, self.backend.trace, scene,
+                                                         cfg.reflection_fill_count, seed=cfg.seed),
+                              "%(added)d Gaussians (%(unseen)d candidates unseen by the cameras) along "
+                              "%(open_rays)d open mirror reflections (of %(mirror_rays)d mirror rays)"))
+            if cfg.mirror_stereo_count > 0:
+                fills.append((*mirror_stereo_gaussians(self.rays, self.backend.trace, scene,
+                                                       cfg.mirror_stereo_count, seed=cfg.seed),
+                              "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
+                              "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
+                              "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, %(completed)d "
+                              "of them flat ones completed from their matched neighbours)"))
+            box = self._captured_box(scene, [f[0] for f in fills])
+            ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
             self._replace(extra=ff)
             self.far_field_added = True
-            log.info("step %d: added %d far-field Gaussians", self.step, len(ff))
-            if cfg.reflection_fill_count > 0:
-                self._add_fill(*reflection_fill_gaussians(self.rays, self.backend.trace, scene,
-                                                          cfg.reflection_fill_count, seed=cfg.seed),
-                               "%(added)d Gaussians (%(unseen)d candidates unseen by the cameras) along "
-                               "%(open_rays)d open mirror reflections (of %(mirror_rays)d mirror rays)")
-            if cfg.mirror_stereo_count > 0:
-                self._add_fill(*mirror_stereo_gaussians(self.rays, self.backend.trace, scene,
-                                                        cfg.mirror_stereo_count, seed=cfg.seed),
-                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
-                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
-                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, %(completed)d of "
-                               "them flat ones completed from their matched neighbours)")
+            log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box %s .. %s)",
+                     self.step, len(ff), np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist())
+            for fill in fills:
+                self._add_fill(*fill)
             if cfg.highlight_fill:
                 self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
                                "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
