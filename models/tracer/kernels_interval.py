@@ -113,6 +113,19 @@ def opaque_cut(rep: Replay, ray: int, base: int, m: int, trans: float, threshold
 
 
 @wp.func
+def cut_opaque(rep: Replay, ray: int, base: int, m: int, trans: float, threshold: float, shift: float, d_t: float,
+               d_id: int, max_dist: float, last: int):
+    """An opaque window's sorted hits: keep them up to the crossing hit + the tail witness and end the window at the
+    witness. Returns (m, last, d_t, d_id, max_dist), unchanged while the crossing hit is the last one kept."""
+    cut = opaque_cut(rep, ray, base, m, trans, threshold)
+    if cut + 2 <= m:
+        m = cut + 2
+        last = 0
+        d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+    return m, last, d_t, d_id, max_dist
+
+
+@wp.func
 def later(t: float, gid: int, t_ref: float, id_ref: int) -> int:
     """(t, gid) after (t_ref, id_ref) in the hit order (by t, ties by id)."""
     return hit_less(t_ref, id_ref, t, gid)
@@ -213,11 +226,8 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             full = 1
             opaque = 1
             next_skip_ok = 0
-            cut = opaque_cut(rep, ray, base, m, acc.trans, prm.trans_threshold)
-            if cut + 2 <= m:
-                m = cut + 2
-                last = 0
-                d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+            m, last, d_t, d_id, max_dist = cut_opaque(rep, ray, base, m, acc.trans, prm.trans_threshold, shift, d_t,
+                                                      d_id, max_dist, last)
         query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
 
         gid = int(0)
@@ -242,10 +252,9 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                     m += 1
                                 else:
                                     insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
-                                cut = opaque_cut(rep, ray, base, m, acc.trans, prm.trans_threshold)
-                                if cut + 2 <= m:
-                                    m = cut + 2
-                                    d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+                                m, last, d_t, d_id, max_dist = cut_opaque(rep, ray, base, m, acc.trans,
+                                                                          prm.trans_threshold, shift, d_t, d_id,
+                                                                          max_dist, last)
                             elif m < room:
                                 store(rep, ray, base + m, h[0], gid, h[1])
                                 m += 1
@@ -265,11 +274,9 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                     full = 1
                                     opaque = 1
                                     next_skip_ok = 0
-                                    cut = opaque_cut(rep, ray, base, m, acc.trans, prm.trans_threshold)
-                                    if cut + 2 <= m:
-                                        m = cut + 2
-                                        last = 0
-                                        d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
+                                    m, last, d_t, d_id, max_dist = cut_opaque(rep, ray, base, m, acc.trans,
+                                                                              prm.trans_threshold, shift, d_t, d_id,
+                                                                              max_dist, last)
                             else:
                                 insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
                                 d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
