@@ -8,11 +8,11 @@ roughness 0.
 
 Also removed here: points inside ``keep_out``, the box of the captured room (the trainer passes the 0.5-99.5 %
 box of the scene's Gaussians and of the mirror fills', widened to hold every camera: the fills place what the
-cameras see only in mirrors, often the half of the room behind them). The camera sphere alone is not where the scene lives in a room whose
-cameras stand together: there the shell began inside the room, and its Gaussians (opacity 0.1, zero normal)
-hung in the space no training camera looks at, in front of every test camera that does (zoo_mirror_metal:
-~60 % of each test pixel's weight in front of the true surface, all of it from Gaussians outside every
-training frustum, and their zero normals switched the test views' reflections off).
+cameras see only in mirrors, often the half of the room behind them). The camera sphere alone is not where the
+scene lives in a room whose cameras stand together: there the shell began inside the room, and its Gaussians
+(opacity 0.1, zero normal) hung in the space no training camera looks at, in front of every test camera that
+does (zoo_mirror_metal: ~60 % of each test pixel's weight in front of the true surface, all of it from
+Gaussians outside every training frustum, and their zero normals switched the test views' reflections off).
 """
 
 from __future__ import annotations

@@ -319,14 +319,14 @@ class Trainer:
                                                        cfg.mirror_stereo_count, seed=cfg.seed),
                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
-                              "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, %(completed)d "
-                              "of them flat ones completed from their matched neighbours)"))
+                              "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, "
+                              "%(completed)d of them flat ones completed from their matched neighbours)"))
             box = self._captured_box(scene, [f[0] for f in fills])
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
             self._replace(extra=ff)
             self.far_field_added = True
-            log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box %s .. %s)",
-                     self.step, len(ff), np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist())
+            log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box "
+                     "%s .. %s)", self.step, len(ff), np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist())
             for fill in fills:
                 self._add_fill(*fill)
             if cfg.highlight_fill:
