@@ -4,7 +4,9 @@ Each Gaussian's support is {mean + R S u : |u| <= s}, the ball of its local fram
 opacity-adaptive cutoff s (alpha > alpha_min exactly there); its world AABB has half extent s |row i of R S|
 along axis i (prepare.py; until 2026-11 the AABB of the oriented cube |u|_inf <= s, up to sqrt(3) wider).
 Refit when only the parameters moved; rebuild when the number of Gaussians changes,
-on request, or always (ablation `always_rebuild`).
+on request, or always (ablation `always_rebuild`). The tracer also asks for a rebuild when it is handed other
+tensors of the same count whose Gaussians mostly moved farther than their own size (``moved_far``): a refit
+keeps the old tree's topology, and a tree built for another scene made a training step 5x slower.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import time
 import torch
 import warp as wp
 
-from models.tracer.interop import to_warp
+from models.tracer.interop import to_torch, to_warp, torch_device_for
 from models.tracer.launch import ray_chunks
 from models.tracer.prepare import prepare_kernel
 from models.tracer.structs import vec16
@@ -34,6 +36,8 @@ class GaussianBvh:
         self.count = -1
         self.last_update_s = 0.0   # wall time of the last update
         self.last_was_rebuild = False
+        self._built_means: torch.Tensor | None = None  # the means the tree was built for (moved_far)
+        self._built_size = 0.0                          # their median box diagonal
 
     def update(self, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
                opacity_logits: torch.Tensor, kernel_p: int, alpha_min: float, rebuild: bool = False,
@@ -71,9 +75,23 @@ class GaussianBvh:
         elif self.last_was_rebuild:
             self.bvh = wp.Bvh(self.lowers, self.uppers)
             self.count = n
+            self._built_means = means.detach().float().clone()
+            dev = torch_device_for(self.device) or torch.device("cpu")
+            lo, hi = to_torch(self.lowers, dev), to_torch(self.uppers, dev)
+            stride = max(1, n // 4096)
+            self._built_size = float((hi[::stride] - lo[::stride]).norm(dim=1).median())
         else:
             self.bvh.refit()
         self.last_update_s = time.perf_counter() - start
+
+    def moved_far(self, means: torch.Tensor) -> bool:
+        """Whether most of ``means`` [N, 3] (the same count as the tree) lie farther from where the tree was built
+        than the median Gaussian box diagonal then: a refit would keep a topology made for another scene. One
+        device read-back; the tracer asks only when it is handed other tensors (an optimiser step never does)."""
+        if self._built_means is None or len(means) != self.count or self._built_means.device != means.device:
+            return False
+        drift = (means.detach().float() - self._built_means).norm(dim=1).median()
+        return bool(drift > self._built_size)
 
     @property
     def id(self) -> int:

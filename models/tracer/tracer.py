@@ -112,6 +112,7 @@ class Tracer:
         key = self._key(gaussians)
         if self._scene_key is None or any(a[0] is not b[0] for a, b in zip(self._scene_key, key)):
             self._aliases.clear()  # other tensors: drop the views of the old ones (and their memory)
+            rebuild = rebuild or self.bvh.moved_far(gaussians.means)  # another scene of the same size: a new tree
         with self.timer.section("tracer_host"), self.timer.section("bvh_update"):
             self.bvh.update(gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
                             self.config.kernel_p, self.config.alpha_min, rebuild=rebuild or self.config.always_rebuild,
