@@ -16,7 +16,7 @@ import time
 import torch
 import warp as wp
 
-from models.tracer.interop import to_torch, to_warp, torch_device_for
+from models.tracer.interop import to_warp
 from models.tracer.launch import ray_chunks
 from models.tracer.prepare import prepare_kernel
 from models.tracer.structs import vec16
@@ -37,7 +37,6 @@ class GaussianBvh:
         self.last_update_s = 0.0   # wall time of the last update
         self.last_was_rebuild = False
         self._built_means: torch.Tensor | None = None  # the means the tree was built for (moved_far)
-        self._built_size = 0.0                          # their median box diagonal
 
     def update(self, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
                opacity_logits: torch.Tensor, kernel_p: int, alpha_min: float, rebuild: bool = False,
@@ -76,22 +75,19 @@ class GaussianBvh:
             self.bvh = wp.Bvh(self.lowers, self.uppers)
             self.count = n
             self._built_means = means.detach().float().clone()
-            dev = torch_device_for(self.device) or torch.device("cpu")
-            lo, hi = to_torch(self.lowers, dev), to_torch(self.uppers, dev)
-            stride = max(1, n // 4096)
-            self._built_size = float((hi[::stride] - lo[::stride]).norm(dim=1).median())
         else:
             self.bvh.refit()
         self.last_update_s = time.perf_counter() - start
 
-    def moved_far(self, means: torch.Tensor) -> bool:
-        """Whether most of ``means`` [N, 3] (the same count as the tree) lie farther from where the tree was built
-        than the median Gaussian box diagonal then: a refit would keep a topology made for another scene. One
-        device read-back; the tracer asks only when it is handed other tensors (an optimiser step never does)."""
+    def moved_far(self, means: torch.Tensor, size: float) -> bool:
+        """Whether most of ``means`` [N, 3] (the same count as the tree) lie farther than ``size`` (the tracer
+        passes the median box diagonal at the build) from where the tree was built: a refit would keep a topology
+        made for another scene. One device read-back; the tracer asks only when it is handed other tensors (an
+        optimiser step never does)."""
         if self._built_means is None or len(means) != self.count or self._built_means.device != means.device:
             return False
         drift = (means.detach().float() - self._built_means).norm(dim=1).median()
-        return bool(drift > self._built_size)
+        return bool(drift > size)
 
     @property
     def id(self) -> int:

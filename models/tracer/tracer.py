@@ -75,6 +75,7 @@ class Tracer:
         self.scene_box_values = (0.0,) * 6  # the same as floats (part of the launch parameters' key)
         self.scene_diagonal = 1.0
         self.box_diagonal = 1.0
+        self._built_box_diagonal = 0.0  # box_diagonal at the last rebuild (BVH.moved_far)
         self._prm, self._prm_key = None, None  # the last launch parameters (_params)
         threads = self.config.num_threads if self.is_cpu else 1
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="tracer") if threads > 1 else None
@@ -112,7 +113,8 @@ class Tracer:
         key = self._key(gaussians)
         if self._scene_key is None or any(a[0] is not b[0] for a, b in zip(self._scene_key, key)):
             self._aliases.clear()  # other tensors: drop the views of the old ones (and their memory)
-            rebuild = rebuild or self.bvh.moved_far(gaussians.means)  # another scene of the same size: a new tree
+            # another scene of the same size: a new tree
+            rebuild = rebuild or self.bvh.moved_far(gaussians.means, self._built_box_diagonal)
         with self.timer.section("tracer_host"), self.timer.section("bvh_update"):
             self.bvh.update(gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
                             self.config.kernel_p, self.config.alpha_min, rebuild=rebuild or self.config.always_rebuild,
@@ -126,6 +128,8 @@ class Tracer:
         with self.timer.section("tracer_host"):
             self._scene_key = key
             self._scene_box()
+            if self.bvh.last_was_rebuild:
+                self._built_box_diagonal = self.box_diagonal
 
     def _scene_box(self) -> None:
         """The union of the Gaussians' world bounds (the interval traversal clips rays to it). Reduced where the
