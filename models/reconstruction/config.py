@@ -77,6 +77,15 @@ class ReconstructConfig:
     mirror_stereo_count: int = setting(8000, "with the far field: Gaussians placed by stereo on planar mirrors "
                                        "(0 = off)", minimum=0)
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
+    fill_anchor: float = setting(0.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
+                                 "in mirrors) are surfels facing the views that placed them: along that direction "
+                                 "they stay within this many of their initial sizes of where the fill put them and "
+                                 "grow at most this factor (reflections alone pin down no depth: free, they drift "
+                                 "and swell in the part of the room no camera sees); 0 = free, the default "
+                                 "(zoo_mirror_metal at 3: linear final +5.7 dB, tonemapped -0.9; anchors.py)",
+                                 minimum=0)
+    fill_spread: float = setting(10.0, "with fill_anchor: how far (in initial sizes) and by what factor those "
+                                 "surfels may move and grow along the surface, to cover it", minimum=1)
     radiance_clamp: float = setting(0.0, "clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: "
                                     "5.0)", minimum=0)
     origin_offset: float = setting(0.0016, "reflection rays start this far past their surface point, along the "

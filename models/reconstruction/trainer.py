@@ -29,6 +29,7 @@ from models.settings import config_hash, to_dict
 from models.tracer.output import TraceOutput
 from models.trained import ModelSettings
 
+from .anchors import Anchors, facing_surfels
 from .batches import RayBatcher
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
@@ -82,6 +83,7 @@ class Trainer:
         self._nonfinite = torch.zeros(len(self.params), device=self.device)  # per parameter: steps skipped
         self._one = torch.ones((), device=self.device)
         self.optimizer = self._make_optimizer()
+        self.anchors = Anchors(self.device, self.params["means"].dtype)  # fill Gaussians kept near their placing
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
         for d in self.decisions:
@@ -196,8 +198,16 @@ class Trainer:
         t = min(step / max(self.config.iterations, 1), 1.0)
         return self.extent * math.exp((1 - t) * math.log(lr.position_init) + t * math.log(lr.position_final))
 
-    def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None) -> None:
-        """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians, keeping Adam's state aligned."""
+    def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None,
+                 anchored: bool = False) -> None:
+        """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
+        now, see anchors.py), keeping Adam's state and the anchors aligned."""
+        if keep is not None:
+            self.anchors.keep(keep.to(self.anchors.index.device))
+        if extra is not None and anchored and self.config.fill_anchor > 0:
+            extra = facing_surfels(extra)
+            first = len(self.params["means"]) - (0 if keep is None else int((~keep).sum()))
+            self.anchors.append(first, extra, self.config.fill_anchor, self.config.fill_spread)
         new_opt_state = {}
         for group in self.optimizer.param_groups:
             name = group["name"]
@@ -225,6 +235,7 @@ class Trainer:
         self.params["diffuse"].clamp_(min=0.0)
         self.params["roughness"].clamp_(0.0, 1.0)
         self.params["f0"].clamp_(0.0, 1.0)
+        self.anchors.project(self.params["means"], self.params["quats"], self.params["log_scales"])
 
     # ----------------------------------------------------------------- steps
     def sample_batch(self) -> RaySet:
@@ -281,11 +292,15 @@ class Trainer:
                 metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])
         return total, metrics
 
-    def _add_fill(self, fill: Gaussians | None, stats: dict, message: str) -> None:
-        """Append a fill's Gaussians (if any), log ``message % stats`` and keep it among the decisions (with
-        each of ``stats["notes"]``: what a fill could not decide well)."""
+    def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False) -> None:
+        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py), log ``message % stats`` and keep it
+        among the decisions (with each of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
-            self._replace(extra=fill)
+            self._replace(extra=fill, anchored=anchored)
+        depth, spread = self.config.fill_anchor, max(self.config.fill_spread, self.config.fill_anchor)
+        if fill is not None and anchored and depth > 0:
+            message += (f", anchored (surfels facing the views: along that direction within {depth:g}x their "
+                        f"size of where they were put and grown <= {depth:g}x, across it {spread:g}x)")
         log.info("step %d: added %s", self.step, message % stats)
         self.decisions.append(f"step {self.step}: added {message % stats}")
         for note in stats.get("notes", ()):
@@ -313,14 +328,14 @@ class Trainer:
                 fills.append((*reflection_fill_gaussians(self.rays, self.backend.trace, scene,
                                                          cfg.reflection_fill_count, seed=cfg.seed),
                               "%(added)d Gaussians (%(unseen)d candidates unseen by the cameras) along "
-                              "%(open_rays)d open mirror reflections (of %(mirror_rays)d mirror rays)"))
+                              "%(open_rays)d open mirror reflections (of %(mirror_rays)d mirror rays)", True))
             if cfg.mirror_stereo_count > 0:
                 fills.append((*mirror_stereo_gaussians(self.rays, self.backend.trace, scene,
                                                        cfg.mirror_stereo_count, seed=cfg.seed),
                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, "
-                              "%(completed)d of them flat ones completed from their matched neighbours)"))
+                              "%(completed)d of them flat ones completed from their matched neighbours)", True))
             box = self._captured_box(scene, [f[0] for f in fills])
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
             self._replace(extra=ff)
@@ -423,6 +438,7 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "far_field_added": self.far_field_added,
+            "anchors": self.anchors.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -432,6 +448,9 @@ class Trainer:
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
+        self.anchors = Anchors(self.device, self.params["means"].dtype)
+        if "anchors" in state:
+            self.anchors.load_state_dict(state["anchors"])
 
     def _skip_non_finite(self) -> None:
         """Flag, on the device (no read-back), the parameters whose gradient holds NaN / Inf, and make this step's
