@@ -120,6 +120,25 @@ def test_recovered_cameras_match_truth(synth, posed, record_property):
     assert [v.split for v in capture.views] == ["test" if i % 8 == 0 else "train" for i in range(VIEWS)]
 
 
+def test_true_cameras_move_onto_the_colmap_ones(synth, posed):
+    """The photos path's scoring (models/poses/truth.py): the renderer's cameras, moved into the posed frame by the
+    similarity of the camera centres, land on the cameras COLMAP recovered for the same photos."""
+    from models.poses.truth import photos_truth
+
+    capture, _ = posed
+    moved, record = photos_truth(synth, synth, capture, split="train")
+    assert record["poses"]["registered"] == VIEWS and record["poses"]["rotation_deg_max"] < 0.5
+    extent = capture.camera_extent()
+    by_name = {v.name: v.camera.c2w for v in capture.views}
+    for view in moved.views:
+        c2w = by_name[view.name]
+        assert np.linalg.norm(view.camera.c2w[:3, 3] - c2w[:3, 3]) < 0.01 * extent
+        cos = (np.trace(view.camera.c2w[:3, :3].T @ c2w[:3, :3]) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.5
+    scale = record["similarity"]["scale"]
+    assert np.allclose(moved.views[0].buffers["depth"], synth.views[0].buffers["depth"] * scale, rtol=1e-6)
+
+
 def test_capture_on_disk_is_normalised_with_points_and_model(posed):
     capture, root = posed
     out = root / "capture"

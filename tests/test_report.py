@@ -126,3 +126,29 @@ def test_scene_report_header_without_command_gives_the_command_for_its_presets()
                                                       "--config scene=demo preset=fast,ci</code>.")
     assert run_line("demo", [], "snakemake -c2 --config scene=demo") == \
         "Run with <code>snakemake -c2 --config scene=demo</code> (presets: none)."
+
+
+def test_batch_report_sets_a_photos_run_beside_its_exact_room(tmp_path):
+    """A photos run scored against a rendered truth (metrics.json photos_path) gets a row beside the same room on
+    exact buffers, with what limits it: pose errors and the network's buffer errors."""
+    exact = {"mean": {"psnr_final_tonemapped": 25.0, "psnr_specular_tonemapped": 21.0, "psnr_diffuse_tonemapped": 24.0}}
+    photos = {"mean": {"psnr_final_tonemapped": 18.5, "psnr_specular_tonemapped": 12.0, "psnr_diffuse_tonemapped": 17.0},
+              "photos_path": {"truth_scene": "room", "similarity": {"scale": 0.4},
+                              "poses": {"registered": 19, "photos": 20, "rotation_deg_mean": 0.125,
+                                        "position_frac_mean": 0.0031},
+                              "network": {"mean": {"diffuse_psnr_tonemapped": 14.5, "normal_angle_deg": 31.0,
+                                                   "depth_relative_error_median": 0.25}}}}
+    for name, m in (("room", exact), ("room_photos", photos)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.json").write_text(json.dumps(m))
+    out = tmp_path / "batch.html"
+    proc = subprocess.run([sys.executable, "-m", "stages.report", "batch", str(tmp_path / "room"),
+                           str(tmp_path / "room_photos"), "--out", str(out)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    html = out.read_text()
+    row = re.search(r"<tr><td class=\"l\">room_photos</td>.*?</tr>", html.split("Photos path")[1]).group(0)
+    cells = re.findall(r"<td[^>]*>(.*?)</td>", row)
+    assert cells[:5] == ["room_photos", "room", "18.50 / 25.00", "12.00 / 21.00", "17.00 / 24.00"]
+    assert cells[5] == "19/20" and cells[6] == "0.125 deg, 0.310%"
+    assert cells[7:] == ["14.50", "–", "31.0", "0.250"]

@@ -61,6 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     except (CaptureError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
+    if capture.meta.extra.get("photos_path"):  # a photos run scored against a rendered truth: what limits it
+        record = capture.meta.extra["photos_path"]
+        metrics["photos_path"] = {"similarity": record.get("similarity"), "truth_scene": record.get("truth_scene"),
+                                  "poses": {k: v for k, v in record.get("poses", {}).items() if k != "per_view"},
+                                  "network": {"mean": (record.get("network") or {}).get("mean")}}
     if args.model and (args.model / "stage.json").is_file():
         stage = json.loads((args.model / "stage.json").read_text())
         metrics["train_time_s"] = stage.get("wall_time_s")

@@ -206,6 +206,29 @@ def run_line(scene: str, presets: list[str], command: str | None) -> str:
     return f"Made with the presets {esc(named)}: <code>snakemake --cores 2 --config scene={esc(scene)}{esc(preset)}</code>."
 
 
+def photos_path_section(metrics: dict) -> str:
+    """What limits a photos run scored against a rendered truth (metrics.json photos_path): the poses' errors
+    and the network's buffer errors on the train views; empty for other scenes."""
+    record = metrics.get("photos_path")
+    if not record:
+        return ""
+    poses = record.get("poses", {})
+    rows = [["photos registered", f"{poses.get('registered')} / {poses.get('photos')}"],
+            ["rotation error, mean / max (deg)",
+             f"{fmt(poses.get('rotation_deg_mean'), 3)} / {fmt(poses.get('rotation_deg_max'), 3)}"],
+            ["position error, mean / max (% of the camera extent)",
+             f"{fmt(100 * poses.get('position_frac_mean', float('nan')), 3)} / "
+             f"{fmt(100 * poses.get('position_frac_max', float('nan')), 3)}"]]
+    network = (record.get("network") or {}).get("mean") or {}
+    rows += [[f"network: {k.replace('_', ' ')}", fmt(v, 3)] for k, v in network.items()]
+    return ("<h2>Photos path: what limits it</h2><p class=\"note\">The test views are the rendered truth moved "
+            "into the posed frame (similarity of the true and posed train cameras, scale "
+            f"{fmt(record.get('similarity', {}).get('scale'), 4)}). Poses: errors after that alignment. Network: "
+            "its buffers of the train views against the renderer's exact ones (PSNR tonemapped for diffuse / "
+            "specular, mean angle for normals, median relative error for depth, mean absolute error for roughness "
+            "/ F0).</p>" + table(["", "value"], rows))
+
+
 def scene_report(scene_dir: Path, config: dict | None = None, command: str | None = None) -> str:
     """The HTML of one scene's report (results/<scene>/ holds capture, model, renders, metrics.json); ``command``:
     the command that ran the workflow (default: the snakemake command for the config's scene and presets)."""
@@ -220,7 +243,12 @@ def scene_report(scene_dir: Path, config: dict | None = None, command: str | Non
     parts.append("<h2>Metrics (test views)</h2>" + (metrics_tables(metrics) if metrics else "<p>No metrics.json.</p>"))
     parts.append("<h2>Cost</h2>" + cost_table(metrics))
     parts.append("<h2>What the scene required</h2>" + what_ran(config, scene_dir))
-    parts.append("<h2>Ground truth vs ours</h2>" + view_images(scene_dir / "capture", scene_dir / "renders"))
+    photos = photos_path_section(metrics)
+    if photos:
+        parts.append(photos)
+    # a photos run scored against a rendered truth (photos_of) has its test views in capture_eval
+    truth = scene_dir / "capture_eval" if (scene_dir / "capture_eval").is_dir() else scene_dir / "capture"
+    parts.append("<h2>Ground truth vs ours</h2>" + view_images(truth, scene_dir / "renders"))
     curves = training_curves(_jsonl(scene_dir / "model" / "train_log.jsonl"),
                              warmup=(model.get("config") or {}).get("warmup"))
     if curves:

@@ -63,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
                    "not reach are the capture's own, noise included")
     p.add_argument("--name", help="name recorded in capture.yaml (default: the scene; 'edit:<names>' with --edits)")
     p.add_argument("--out", required=True, type=Path, help="capture output directory")
+    p.add_argument("--photos", type=Path, help="also write each rendered view as a photo into this folder: "
+                   "<view>.png, 8-bit sRGB of the final image clipped at 1 (what a camera keeps; no buffers, no "
+                   "poses), for the photos path (poses -> buffers -> ...) on a room whose truth is known")
     p.add_argument("--threads", type=int, help="Mitsuba's (Dr.Jit's) CPU threads (what Snakemake gives the job; "
                    "default: one per core)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -124,12 +127,27 @@ def main(argv: list[str] | None = None) -> int:
             extra = capture.meta.extra
             write_stage_json(out, "synth", {"synth": synth_cfg, "edits": edits}, time.perf_counter() - t0,
                              extra={"seconds_per_view": extra["seconds_per_view"], "spp": extra["spp"]})
+        if args.photos:
+            with staged_folder(args.photos) as folder:
+                write_photos(capture, folder)
     except ValueError as e:  # includes ConfigError and CaptureError subclasses of ValueError
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"wrote {len(capture.views)} views to {args.out} ({extra['spp']} spp, "
           f"{extra['mean_seconds_per_view']} s/view, {extra['seconds_total']} s total)")
     return 0
+
+
+def write_photos(capture, folder: Path) -> None:
+    """<folder>/<view>.png per view: the final image (R,G,B) clipped to [0, 1], sRGB-encoded, 8 bits."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from models.capture.color import linear_to_srgb
+
+    for view in capture.views:
+        srgb = linear_to_srgb(np.clip(view.buffers["rgb"], 0.0, 1.0))
+        iio.imwrite(folder / f"{view.name}.png", (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8))
 
 
 if __name__ == "__main__":

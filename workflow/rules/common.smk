@@ -94,7 +94,7 @@ def _check_photos(scene):
     from models.poses.photos import missing_photos_message
 
     cfg = scene_config(scene)
-    if cfg["kind"] != "photos" or os.path.isfile(f"{RESULTS}/{scene}/capture/transforms.json"):
+    if cfg["kind"] != "photos" or cfg.get("photos_of") or os.path.isfile(f"{RESULTS}/{scene}/capture/transforms.json"):
         return
     poses = cfg["poses"]
     if not poses.get("images"):
@@ -194,6 +194,35 @@ def training_capture(wildcards):
     """What init and reconstruct train on: the capture, or the capture with network-predicted buffers."""
     base = f"{RESULTS}/{wildcards.scene}"
     return f"{base}/capture_net" if predicts_buffers(wildcards.scene) else f"{base}/capture"
+
+
+def photos_of(scene):
+    """The scene's photos_of section ({truth: <synthetic scene>}) when its photos are rendered by the workflow,
+    else None."""
+    return scene_config(scene).get("photos_of")
+
+
+def scenes_with_photos_of():
+    """Wildcard regex of the scenes whose photos the workflow renders (photos_of)."""
+    from stages.config import read_yaml
+
+    names = [s for s in known("scenes") if _scene_kind(s) == "photos"
+             and (scene_config(s) if s in SCENES else read_yaml(CONFIGS / "scenes" / f"{s}.yaml")).get("photos_of")]
+    return "|".join(re.escape(n) for n in names) or "(?!)"
+
+
+def photos_input(wildcards):
+    """The photos the poses stage poses: those the workflow renders (photos_of), else the config's poses.images."""
+    if photos_of(wildcards.scene):
+        return f"{RESULTS}/{wildcards.scene}/photos"
+    return scene_config(wildcards.scene)["poses"]["images"]
+
+
+def eval_capture(wildcards):
+    """The test views render and evaluate use: the rendered truth moved into the posed frame (photos_of), else
+    the scene's capture."""
+    base = f"{RESULTS}/{wildcards.scene}"
+    return f"{base}/capture_eval" if photos_of(wildcards.scene) else f"{base}/capture"
 
 
 def buffernet_model(scene):

@@ -26,7 +26,7 @@ rule reconstruct:
 rule render:
     """N spp renders + denoiser of the test views and a novel camera path, every layer as EXR + PNG."""
     input:
-        capture=f"{RESULTS}/{{scene}}/capture",
+        capture=eval_capture,
         model=f"{RESULTS}/{{scene}}/model/model.yaml",
     output:
         # the key pictures of the renders (final / diffuse / specular of each test view) go into `snakemake --report`
@@ -51,7 +51,7 @@ rule evaluate:
     """PSNR / SSIM per layer on the test split (linear and tonemapped), LPIPS with evaluate.lpips, training time,
     Gaussian count, peak memory, render FPS at 1 spp."""
     input:
-        capture=f"{RESULTS}/{{scene}}/capture",
+        capture=eval_capture,
         renders=f"{RESULTS}/{{scene}}/renders",
         model=f"{RESULTS}/{{scene}}/model/model.yaml",
         # evaluate.lpips: the local weight files (backbone, lin), when set
