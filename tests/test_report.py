@@ -152,3 +152,4 @@ def test_batch_report_sets_a_photos_run_beside_its_exact_room(tmp_path):
     assert cells[:5] == ["room_photos", "room", "18.50 / 25.00", "12.00 / 21.00", "17.00 / 24.00"]
     assert cells[5] == "19/20" and cells[6] == "0.125 deg, 0.310%"
     assert cells[7:] == ["14.50", "–", "31.0", "0.250"]
+    assert "Photos runs (room_photos) are NOT g.t. inputs" in html

@@ -93,6 +93,9 @@ def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report",
              "diffuse + specular + emission, diffuse = diffuse + emission, where a capture has emission. Our scenes "
              "are rendered by the <code>synth</code> stage with exact buffers (the paper's \"g.t. inputs\" setting). "
              + lpips_note
+             + (f" Photos runs ({esc(', '.join(n for n in names if metrics[n].get('photos_path')))}) are NOT g.t. "
+                "inputs: COLMAP poses and network buffers from 8-bit photos (see the photos-path table below)."
+                if any(metrics[n].get("photos_path") for n in names) else "")
              + (f" <b>Saturated scores</b> (see the scene reports): {esc(', '.join(saturated))}." if saturated else "")
              + "</p>",
              "<h3>For orientation: the paper's Table 1 (its scenes, GPU schedule)</h3>",
