@@ -80,6 +80,7 @@ def test_network_errors_are_measured_in_the_posed_frame(scene):
     assert exact["views"] == 6
     assert exact["mean"]["normal_angle_deg"] < 0.05 and exact["mean"]["depth_relative_error_median"] < 1e-6
     assert exact["mean"]["roughness_mae"] == 0.0
+    assert exact["mean"]["normal_angle_deg_facing_camera"] > 60  # random normals: ~90 deg from any direction
     # a network whose normals are the TRUE frame's (not rotated) and whose depth is unscaled is wrong by that
     wrong = Capture([View(v.name, p.camera, "train", {**p.buffers, "normal": v.buffers["normal"],
                                                        "depth": v.buffers["depth"]})

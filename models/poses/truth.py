@@ -13,8 +13,9 @@ Beside the moved views, ``photos_truth`` reports what limits such a run:
 - poses: per registered photo, rotation error (degrees) and position error (fraction of the camera extent)
   after that alignment, and how many photos COLMAP dropped;
 - network: per predicted buffer, its error against the renderer's exact buffer of the same train view (PSNR
-  tonemapped for diffuse / specular, mean angle for normals, median relative error for depth, mean absolute error
-  for roughness / F0), compared in the posed frame (normals rotated, depth scaled);
+  tonemapped for diffuse / specular, mean angle for normals, beside the trivial every-normal-faces-the-camera
+  baseline, median relative error for depth, mean absolute error for roughness / F0), compared in the posed
+  frame (normals rotated, depth scaled);
 - reconstruction: what is left, read against the same room trained on exact buffers (the batch report).
 """
 
@@ -130,6 +131,10 @@ def buffer_errors(predicted: Capture, reference: Capture, sim: Similarity) -> di
                 valid = np.linalg.norm(t, axis=-1) > 0.5
                 cos = np.clip((pn * tn).sum(-1), -1, 1)[valid]
                 scores["normal_angle_deg"] = float(np.degrees(np.arccos(cos)).mean()) if cos.size else float("nan")
+                # the trivial baseline: every normal facing the camera (its +z axis, OpenGL convention)
+                facing = np.clip(tn @ view.camera.c2w[:3, 2], -1, 1)[valid]
+                scores["normal_angle_deg_facing_camera"] = (float(np.degrees(np.arccos(facing)).mean())
+                                                            if facing.size else float("nan"))
             elif layer == "depth":
                 valid = (t[..., 0] > 0) & np.isfinite(t[..., 0]) & (p[..., 0] > 0)
                 rel = np.abs(p[..., 0] - t[..., 0])[valid] / t[..., 0][valid]
