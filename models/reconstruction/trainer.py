@@ -150,6 +150,12 @@ class Trainer:
             )
             return True
         escaped = self._escaping_reflections(init)
+        if escaped is None:
+            self.decisions.append(
+                "far field: off, no mirror-like training pixels (F0 > 0.3 and roughness < 0.3 in the buffers): "
+                "mirror stereo and the reflection fills do not run"
+            )
+            return False
         if escaped > self.config.far_field_escape:
             self.decisions.append(
                 f"far field: on, {escaped:.1%} of mirror-like reflection rays leave the initial geometry"
@@ -161,13 +167,14 @@ class Trainer:
         return False
 
     @torch.no_grad()
-    def _escaping_reflections(self, init: Gaussians, max_rays: int = 16384) -> float:
+    def _escaping_reflections(self, init: Gaussians, max_rays: int = 16384) -> float | None:
         """Fraction of perfect-mirror reflections of shiny training pixels (F0 > 0.3, roughness < 0.3, from the
         buffers) that hit none of the initial Gaussians: what reflections would see beyond the captured geometry.
-        (Not a transmittance test: initial Gaussians are faint, opacity 0.1, so walls are semi-transparent.)"""
+        (Not a transmittance test: initial Gaussians are faint, opacity 0.1, so walls are semi-transparent.)
+        None when the buffers have no mirror-like pixel (a network's roughness may never go below 0.3)."""
         found = mirror_rays(self.rays, max_rays)
         if found is None:
-            return 0.0
+            return None
         x, r, _ = found
         # start past the surface's own initial Gaussians (one median initial size; those are scene-relative too)
         offset = max(self.config.path(self.scene_size).origin_offset,
