@@ -252,6 +252,11 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                     m += 1
                                 else:
                                     insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
+                                    # the window now ends at the farthest kept hit: were the crossing hit the last
+                                    # slot, the dropped one (the tail witness) lies beyond the window's end and the
+                                    # probe finds it (seen: seed 2110809220 at replay_capacity 3)
+                                    last = 0
+                                    d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
                                 m, last, d_t, d_id, max_dist = cut_opaque(rep, ray, base, m, acc.trans,
                                                                           prm.trans_threshold, shift, d_t, d_id,
                                                                           max_dist, last)
