@@ -95,6 +95,20 @@ def test_forward_matches_reference(device, variant):
     assert (out.candidates >= out.obb_candidates).all() and (out.obb_candidates >= out.hit_count).all()
 
 
+def test_opaque_window_that_drops_its_farthest_hit_keeps_the_tail_witness():
+    """Seed 2110809220 at replay_capacity 3 (found by a random CI seed): a ray's last window runs out of slots
+    while opaque, with the crossing hit in its last slot; the hit it drops is the tail witness. Its hit count and
+    tail-normalised outputs must still match the reference."""
+    cfg = TracerConfig(replay_capacity=3)
+    seed = 2110809220
+    gs, origins, dirs = scene_and_rays(seed)
+    ref, amb = reference_trace(origins, dirs, gs.to(dtype=torch.float64), cfg, return_ambiguous=True,
+                               ambiguity_eps=1e-5)
+    out = Tracer(cfg, "cpu").trace(origins, dirs, gs)
+    assert int(out.hit_count[492]) == int(ref.hit_count[492]) == int(ref.blended_count[492]) + 1
+    compare_forward(out, ref, amb, seed, cfg)
+
+
 def _weights(ref, amb, generator):
     return {k: torch.randn(getattr(ref, k).shape, generator=generator, dtype=torch.float64)
             * (~amb).double().reshape(-1, *([1] * (getattr(ref, k).ndim - 1))) for k in OUTPUTS}
