@@ -95,6 +95,16 @@ def _legacy_tracer(data):
     return data
 
 
+def _legacy_path(data):
+    """Path settings written before the Fresnel became an option: those models were trained (and rendered) with
+    the paper's Schlick Fresnel (F90 = 1)."""
+    if data is None:
+        data = {}
+    if isinstance(data, dict) and "fresnel" not in data:
+        data = {**data, "fresnel": "schlick"}
+    return data
+
+
 def read_settings(path: str | Path) -> ModelSettings:
     """The settings of the model folder ``path`` (or of the folder of a gaussians.ply). A folder without
     ``model.yaml`` (made before models described themselves) gets the defaults, with a warning."""
@@ -111,7 +121,7 @@ def read_settings(path: str | Path) -> ModelSettings:
         raise ValueError(f"{file}: colour {colour!r} is not supported (expected {COLOUR!r})")
     return ModelSettings(tracer=_read_section(TracerConfig, _legacy_tracer(data.get("tracer")),
                                                 f"{file} tracer"),
-                         path=_read_section(PathConfig, data.get("path"), f"{file} path"),
+                         path=_read_section(PathConfig, _legacy_path(data.get("path")), f"{file} path"),
                          colour=colour, units=data.get("units"), training=data.get("training") or {},
                          source=str(file))
 

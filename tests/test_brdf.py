@@ -18,6 +18,7 @@ from tests import _numeric as nm
 from models.pathtrace.brdf import (
     SMITH_MODELS,
     eval_specular,
+    fresnel_f90,
     fresnel_schlick,
     ggx_d,
     reflect,
@@ -80,6 +81,25 @@ def test_fresnel_schlick_endpoints():
     f0 = torch.tensor([[0.0, 0.04, 1.0]], dtype=F64)
     assert torch.equal(fresnel_schlick(f0, torch.ones(1, dtype=F64)), f0)  # F(1) = F0
     assert torch.allclose(fresnel_schlick(f0, torch.zeros(1, dtype=F64)), torch.ones(1, 3, dtype=F64))
+
+
+def test_fresnel_f90_matte_reflects_nothing_real_materials_unchanged():
+    """schlick_f90: F0 = 0 (a matte surface: no specular lobe in the capture) gives F = 0 at every angle; from
+    mean F0 = 0.02 up F90 = 1, so every real dielectric (0.04) and metal keeps the paper's Schlick exactly."""
+    cos = torch.linspace(0.0, 1.0, 11, dtype=F64)
+    f0 = torch.tensor([[0.0, 0.0, 0.0], [0.04, 0.04, 0.04], [0.02, 0.02, 0.02], [1.0, 0.7, 0.3]], dtype=F64)
+    f0b = f0[:, None, :].expand(4, 11, 3)
+    f = fresnel_schlick(f0b, cos.expand(4, 11), fresnel_f90(f0b, "schlick_f90"))
+    paper = fresnel_schlick(f0b, cos.expand(4, 11))
+    assert torch.all(f[0] == 0)
+    assert torch.equal(f[1:], paper[1:])
+    assert torch.allclose(f[1:, 0], torch.ones(3, 3, dtype=F64))  # F(0) = F90 = 1
+    assert fresnel_f90(f0, "schlick") is None
+    small = torch.full((1, 3), 0.004, dtype=F64)  # between: F90 = 50 F0 = 0.2, F between F0 and F90
+    assert torch.allclose(fresnel_schlick(small, torch.zeros(1, dtype=F64), fresnel_f90(small)),
+                          torch.full((1, 3), 0.2, dtype=F64))
+    with pytest.raises(ValueError, match="fresnel='fresnel'"):
+        fresnel_f90(f0, "fresnel")
 
 
 def test_ggx_d_projected_area_normalised():
@@ -154,6 +174,12 @@ def test_weight_is_eval_over_pdf(name, smith):
     ref = eval_specular(n[v], wo[v], s.wi[v], r[v], f0[v], smith) / p[v, None]
     assert torch.allclose(s.weight[v], ref, rtol=1e-4, atol=1e-12)
     assert torch.all(s.weight[~v] == 0)
+    f0 = f0 * 0.03  # F90 = 50 mean F0 < 1 on most rows: the same identity with the bounded grazing term
+    f90 = fresnel_f90(f0)
+    assert (f90 < 1).float().mean() > 0.5
+    s = sample(n, wo, r, f0, u1, u2, smith, f90)
+    ref = eval_specular(n[v], wo[v], s.wi[v], r[v], f0[v], smith, f90[v]) / p[v, None]
+    assert torch.allclose(s.weight[v], ref, rtol=1e-4, atol=1e-12)
     assert torch.allclose(s.wi.norm(dim=-1), torch.ones_like(r), atol=1e-12)
 
 

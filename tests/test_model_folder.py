@@ -174,3 +174,22 @@ def test_model_yaml_from_before_the_traversal_option_still_loads(tmp_path):
         (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "tracer": {**old, **flags}}))
         tracer = read_settings(tmp_path / "m").tracer
         assert (tracer.traversal, tracer.kernel_p, tracer.max_replay_capacity) == (traversal, 2, None)
+
+
+def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_path):
+    """Models trained before ``path.fresnel`` existed were trained with F90 = 1: they load as "schlick"; a new
+    model writes its mode, and the default is "schlick_f90"."""
+    from models.gaussians import random_gaussians
+    from models.pathtrace.paths import PathConfig
+
+    g = random_gaussians(10, torch.Generator().manual_seed(0))
+    save_model(tmp_path / "m", g, ModelSettings())
+    assert PathConfig().fresnel == "schlick_f90"
+    assert yaml.safe_load((tmp_path / "m" / MODEL_FILE).read_text())["path"]["fresnel"] == "schlick_f90"
+    assert read_settings(tmp_path / "m").path.fresnel == "schlick_f90"
+    for path in ({"max_path_length": 3, "sampler": "vndf"}, None):
+        (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, **({"path": path} if path else {})}))
+        assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick")
+    (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "path": {"fresnel": "fresnell"}}))
+    with pytest.raises(ValueError, match="model.yaml path: fresnel must be one of"):
+        read_settings(tmp_path / "m")

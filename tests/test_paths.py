@@ -65,6 +65,25 @@ def test_flat_mirror_gives_mirrored_image(backend):
 
 
 @pytest.mark.parametrize("backend", ["reference", "warp"])
+def test_matte_surface_reflects_nothing_with_schlick_f90(backend):
+    """A smooth F0 = 0 plane (the capture's matte materials: no specular lobe at all) under grazing-ish camera
+    rays: with F90 = 1 (the paper's Schlick) it still reflects (1 - cos)^5 of the object; with schlick_f90 its
+    specular is exactly 0, and a F0 = 0.04 plane (a real dielectric) reflects the same in both modes."""
+    dtype = torch.float64 if backend == "reference" else torch.float32
+    o, d = camera_rays(dtype=dtype)
+    fn = reference_fn() if backend == "reference" else Tracer(TracerConfig(num_threads=1)).trace
+
+    def specular(f0, fresnel):
+        cfg = PathConfig(max_path_length=2, fresnel=fresnel)
+        return trace_paths(fn, o, d, scene(mirror_f0=f0, dtype=dtype), cfg, torch.Generator().manual_seed(1)).specular
+
+    assert specular(0.0, "schlick").amax() > 1e-3
+    assert torch.all(specular(0.0, "schlick_f90") == 0)
+    assert torch.equal(specular(0.04, "schlick_f90"), specular(0.04, "schlick"))
+    assert specular(0.04, "schlick").amax() > 1e-3
+
+
+@pytest.mark.parametrize("backend", ["reference", "warp"])
 def test_truncated_mirror_reflects_from_its_surface(backend):
     """A mirror whose rays stop early (T < threshold with hits left): the tracer's tail rule already
     normalised depth / roughness / F0, so the reflection starts ON the mirror (dividing by 1 - T again put
@@ -179,10 +198,11 @@ def test_min_throughput_stops_only_paths_below_it(f0):
     full = trace_paths(reference_fn(), o, d, g, PathConfig(max_path_length=2), torch.Generator().manual_seed(0))
     cut = trace_paths(reference_fn(), o, d, g, PathConfig(max_path_length=2, min_throughput=threshold),
                       torch.Generator().manual_seed(0))
-    # Schlick F at the mirror (perfect mirror: the throughput of the bounce), for every camera ray
+    # Schlick F at the mirror (perfect mirror: the throughput of the bounce), for every camera ray; the default
+    # Fresnel's grazing reflectance F90 = min(1, 50 F0)
     n = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype)
     cos = (-d @ n).clamp(0, 1)
-    schlick = f0 + (1 - f0) * (1 - cos) ** 5
+    schlick = f0 + (min(1.0, 50 * f0) - f0) * (1 - cos) ** 5
     low = full.alive[0] & (schlick < threshold)
     assert torch.equal(cut.alive[0], full.alive[0] & ~low)
     assert torch.equal(cut.specular[~low], full.specular[~low])

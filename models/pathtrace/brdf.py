@@ -164,17 +164,38 @@ def smith_g(n_dot_o: torch.Tensor, n_dot_i: torch.Tensor, alpha: torch.Tensor,
     return torch.where((n_dot_o > 0) & (n_dot_i > 0), g, torch.zeros_like(g))
 
 
-def fresnel_schlick(f0: torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
-    """Schlick Fresnel F = F0 + (1 - F0) (1 - cos)^5, cos = wo . h clamped to [0, 1].
-    f0: [..., 3]; cos: [...] -> [..., 3]. F(cos = 1) = F0 exactly."""
+FRESNEL_MODES = ("schlick_f90", "schlick")
+DEFAULT_FRESNEL = "schlick_f90"
+F90_SCALE = 50.0  # F90 = min(1, 50 mean(F0)): 1 from F0 = 0.02 up (every real dielectric and metal)
+
+
+def fresnel_f90(f0: torch.Tensor, mode: str = DEFAULT_FRESNEL) -> torch.Tensor | None:
+    """Grazing reflectance F90 of the Schlick Fresnel, [..., 1], or None for 1 (``mode``):
+
+    "schlick": F90 = 1, the paper's form. A surface whose F0 is 0 (no specular lobe: the capture contract's
+      matte materials, Mitsuba's principled at specular = 0, eta = 1) still reflects (1 - cos)^5 of what it
+      sees, up to all of it at grazing angles.
+    "schlick_f90" (default): F90 = min(1, 50 mean(F0)) (Schlick's F90 with Schueler's "specular occlusion"
+      bound, as Filament and Unreal): the same as "schlick" from F0 = 0.02 up, and a F0 = 0 surface reflects
+      nothing at any angle, as the ground truth (no real material has F0 < 0.02)."""
+    if mode == "schlick":
+        return None
+    if mode != "schlick_f90":
+        raise ValueError(f"fresnel={mode!r}: expected one of {FRESNEL_MODES}")
+    return (F90_SCALE * f0.mean(-1, keepdim=True)).clamp(0.0, 1.0)
+
+
+def fresnel_schlick(f0: torch.Tensor, cos: torch.Tensor, f90: torch.Tensor | None = None) -> torch.Tensor:
+    """Schlick Fresnel F = F0 + (F90 - F0) (1 - cos)^5, cos = wo . h clamped to [0, 1], F90 = 1 when None.
+    f0: [..., 3]; cos: [...]; f90: [..., 1] or None -> [..., 3]. F(cos = 1) = F0 exactly."""
     m = 1.0 - cos.clamp(0.0, 1.0)
     m2 = m * m
     w = (m2 * m2 * m)[..., None]
-    return f0 + (1.0 - f0) * w
+    return f0 + ((1.0 if f90 is None else f90) - f0) * w
 
 
 def eval_specular(n: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor, roughness: torch.Tensor,
-                  f0: torch.Tensor, smith: str = DEFAULT_SMITH) -> torch.Tensor:
+                  f0: torch.Tensor, smith: str = DEFAULT_SMITH, f90: torch.Tensor | None = None) -> torch.Tensor:
     """Cook-Torrance specular BRDF times cosine: f_s(wo, wi) (n . wi)
     = F(wo . h) D(h) G2(wo, wi) / (4 (n . wo)) = F D V (n . wi).
 
@@ -191,7 +212,7 @@ def eval_specular(n: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor, roughness
     sin2 = dot(torch.linalg.cross(n, h), torch.linalg.cross(n, h))
     d = ggx_d(nh, alpha, sin2)
     v = smith_visibility(co, ci, alpha, smith)
-    f = fresnel_schlick(f0, dot(wo, h))
+    f = fresnel_schlick(f0, dot(wo, h), f90)
     val = f * (d * v * ci.clamp(0.0, 1.0))[..., None]
     valid = (co > 0) & (ci > 0) & (nh > 0)
     return torch.where(valid[..., None], val, torch.zeros_like(val))

@@ -23,7 +23,7 @@ from typing import Callable
 import torch
 
 from models.gaussians import Gaussians
-from models.pathtrace.brdf import fresnel_schlick, reflect
+from models.pathtrace.brdf import DEFAULT_FRESNEL, FRESNEL_MODES, fresnel_f90, fresnel_schlick, reflect
 from models.pathtrace.sampling import sample_specular
 from models.tracer.output import TraceOutput
 
@@ -41,6 +41,8 @@ class PathConfig:
     # along the ray, not the normal, so the reflected line is exact (a flat mirror gives the mirrored image)
     sampler: str = "vndf"  # vndf (visible normals, default) | ndf (half-vector, as the reference)
     grad_roughness_power: float = 3.0  # bounce gradients scaled by (1 - roughness_prev)^power
+    fresnel: str = DEFAULT_FRESNEL  # schlick_f90 (F90 = min(1, 50 mean F0): F0 = 0 reflects nothing) | schlick
+    # (F90 = 1, the paper's; models trained before the option read it: models/trained.py)
     min_throughput: float = 0.0  # a path stops where its throughput (max over RGB) falls below this: 0 = never
     # (renders: the estimate is exact in expectation); training sets it (ReconstructConfig.min_throughput)
 
@@ -49,6 +51,8 @@ class PathConfig:
             raise ValueError(f"max_path_length must be >= 1, got {self.max_path_length}")
         if not 0.0 <= self.min_throughput < 1.0:
             raise ValueError(f"min_throughput must be in [0, 1), got {self.min_throughput}")
+        if self.fresnel not in FRESNEL_MODES:
+            raise ValueError(f"fresnel must be one of {FRESNEL_MODES}, got {self.fresnel!r}")
         if self.sampler not in ("vndf", "ndf"):
             raise ValueError(f"sampler must be 'vndf' or 'ndf', got {self.sampler!r}")
 
@@ -119,12 +123,13 @@ def trace_paths(
         # drawn where the generator lives (a CPU generator gives the same paths on every device)
         u = torch.rand((len(index), 2), generator=generator, dtype=o.dtype,
                        device=o.device if generator is None else generator.device).to(o.device)
-        wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler)
+        f90 = fresnel_f90(f0, config.fresnel)
+        wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler, f90=f90)
         # (no branch on "any mirror": selecting costs less than a device read-back)
         mirror = rough_raw.reshape(-1) <= config.min_roughness
         cos_o = (n * wo).sum(-1).clamp(0.0, 1.0)
         wi = torch.where(mirror[:, None], reflect(d, n), wi)
-        weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o), weight)
+        weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o, f90), weight)
         valid = torch.where(mirror, cos_o > 0, valid)
         keep = keep & valid & (weight.amax(-1) > 0)
         if config.min_throughput > 0:

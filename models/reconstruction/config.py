@@ -55,6 +55,10 @@ class ReconstructConfig:
                                    "model, renders use it", minimum=1, maximum=16)
     sampler: str = setting(_PATH.sampler, "reflection sampling: vndf | ndf (reference); stored with the model",
                            enum=["vndf", "ndf"])
+    fresnel: str = setting(_PATH.fresnel, "Schlick Fresnel's grazing reflectance: schlick_f90 (F90 = min(1, 50 mean "
+                           "F0): a surface with F0 = 0, a matte one, reflects nothing, as in the capture) | schlick "
+                           "(F90 = 1, the paper's: F0 = 0 still reflects (1 - cos)^5); stored with the model",
+                           enum=["schlick_f90", "schlick"])
     loss: LossWeights = setting(default_factory=LossWeights, doc="loss weights")
     lr: LearningRates = setting(default_factory=LearningRates, doc="learning rates")
     tracer: TracerConfig = setting(default_factory=TracerConfig, doc="ray tracer settings (kernel_p, "
@@ -115,7 +119,7 @@ class ReconstructConfig:
         """The path settings this model trains (and is rendered) with, in a scene of size ``scene_size`` (the
         diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
         so a scene scaled by any factor trains the same. Training adds ``min_throughput`` (``training_path``)."""
-        return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler,
+        return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler, fresnel=self.fresnel,
                           origin_offset=self.origin_offset * scene_size)
 
     def training_path(self, scene_size: float) -> PathConfig:

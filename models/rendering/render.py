@@ -33,6 +33,8 @@ class RenderConfig:
     max_path_length: int | None = setting(None, "path segments (1 = no reflections); null = the model's "
                                           "(model.yaml)", minimum=1, maximum=16)
     sampler: str | None = setting(None, "vndf | ndf; null = the model's (model.yaml)", enum=["vndf", "ndf", None])
+    fresnel: str | None = setting(None, "schlick_f90 | schlick; null = the model's (model.yaml)",
+                                  enum=["schlick_f90", "schlick", None])
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
@@ -46,7 +48,7 @@ class RenderConfig:
 
     def path(self, model: PathConfig) -> PathConfig:
         """The model's path settings with this render's overrides."""
-        over = {k: getattr(self, k) for k in ("max_path_length", "sampler") if getattr(self, k) is not None}
+        over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel") if getattr(self, k) is not None}
         return dataclasses.replace(model, **over)
 
 
