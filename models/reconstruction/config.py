@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from models.pathtrace.brdf import FRESNEL_MODES
 from models.pathtrace.paths import PathConfig
 from models.settings import from_dict, setting
 from models.tracer.config import TracerConfig
@@ -58,7 +59,7 @@ class ReconstructConfig:
     fresnel: str = setting(_PATH.fresnel, "Schlick Fresnel's grazing reflectance: schlick_f90 (F90 = min(1, 50 mean "
                            "F0): a surface with F0 = 0, a matte one, reflects nothing, as in the capture) | schlick "
                            "(F90 = 1, the paper's: F0 = 0 still reflects (1 - cos)^5); stored with the model",
-                           enum=["schlick_f90", "schlick"])
+                           enum=list(FRESNEL_MODES))
     loss: LossWeights = setting(default_factory=LossWeights, doc="loss weights")
     lr: LearningRates = setting(default_factory=LearningRates, doc="learning rates")
     tracer: TracerConfig = setting(default_factory=TracerConfig, doc="ray tracer settings (kernel_p, "

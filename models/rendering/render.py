@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from models.capture import Camera
 from models.gaussians import Gaussians
+from models.pathtrace.brdf import FRESNEL_MODES
 from models.pathtrace.paths import PathConfig, trace_paths
 from models.settings import from_dict, setting
 
@@ -34,7 +35,7 @@ class RenderConfig:
                                           "(model.yaml)", minimum=1, maximum=16)
     sampler: str | None = setting(None, "vndf | ndf; null = the model's (model.yaml)", enum=["vndf", "ndf", None])
     fresnel: str | None = setting(None, "schlick_f90 | schlick; null = the model's (model.yaml)",
-                                  enum=["schlick_f90", "schlick", None])
+                                  enum=[*FRESNEL_MODES, None])
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
