@@ -107,12 +107,15 @@ def _legacy_path(data):
 
 def read_settings(path: str | Path) -> ModelSettings:
     """The settings of the model folder ``path`` (or of the folder of a gaussians.ply). A folder without
-    ``model.yaml`` (made before models described themselves) gets the defaults, with a warning."""
+    ``model.yaml`` (made before models described themselves) gets the default tracer and path settings, except
+    the Fresnel: such a model was trained with the paper's Schlick (F90 = 1, as ``_legacy_path``); with a warning."""
     folder = model_folder(path)
     file = folder / MODEL_FILE
     if not file.is_file():
-        log.warning("%s has no %s: rendering with the default tracer / path settings", folder, MODEL_FILE)
-        return ModelSettings(source=f"defaults ({file} missing)")
+        log.warning("%s has no %s: rendering with the default tracer / path settings and the Fresnel models of "
+                    "that time were trained with (schlick)", folder, MODEL_FILE)
+        return ModelSettings(path=_read_section(PathConfig, _legacy_path(None), f"{folder} (no {MODEL_FILE})"),
+                             source=f"defaults ({file} missing)")
     data = read_yaml_mapping(file)
     if data.get("format", FORMAT) > FORMAT:
         raise ValueError(f"{file}: format {data['format']} is newer than this code reads ({FORMAT})")
