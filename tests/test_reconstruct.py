@@ -251,3 +251,36 @@ def test_cuda_trainer_keeps_its_state_on_the_gpu_and_matches_the_cpu():
         assert abs(a["loss"] - b["loss"]) < 1e-3 * max(abs(a["loss"]), 1.0), (a, b)
     for name, p in cpu.params.items():
         torch.testing.assert_close(gpu.params[name].cpu(), p, atol=1e-3, rtol=1e-3)
+
+
+def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carry(demo, tmp_path):
+    """``plane_fill_count``: Gaussians on the unseen parts of the room's bounding planes join the init (logged
+    among the decisions); no training view sees them, so pruning by blending weight would remove them at once:
+    it keeps them (they are the prior's), their geometry gets no gradient, and a checkpoint carries which they
+    are."""
+    capture, init = demo
+    cfg = dict(SMALL, iterations=20, warmup=10, prune_from=10, prune_every=10, checkpoint_every=20,
+               plane_fill_count=4000)
+    trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    n_prior = int(trainer.prior.sum())
+    assert 0 < n_prior <= 4000 and len(trainer.params["means"]) == len(init.means) + n_prior
+    assert any(d.startswith(f"plane fill: {n_prior} Gaussians") for d in trainer.decisions)
+    assert trainer.prior[-n_prior:].all()
+    before = trainer.params["means"][trainer.prior].detach().clone()
+    for p in trainer.params.values():  # their geometry is frozen (reflections alone would swell them), not the rest
+        p.grad = torch.ones_like(p)
+    trainer._freeze_priors()
+    for name, p in trainer.params.items():
+        frozen = name in ("means", "quats", "log_scales")
+        assert bool((p.grad[trainer.prior] == 0).all()) == frozen and bool((p.grad[~trainer.prior] == 1).all()), name
+        p.grad = None
+    trainer.config = dataclasses.replace(trainer.config, prune_min_weight=1e9)  # pruning by weight removes all
+    removed = trainer.prune()
+    assert removed == len(init.means) and int(trainer.prior.sum()) == n_prior == len(trainer.params["means"])
+    assert torch.equal(trainer.params["means"].detach(), before)
+    trainer.save_checkpoint(tmp_path / "last.pt")
+    again = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    again.load_checkpoint(tmp_path / "last.pt")
+    assert torch.equal(again.prior, trainer.prior)
+    off = Trainer(capture, init, ReconstructConfig.from_dict(SMALL), tracer())
+    assert not off.prior.any() and not any(d.startswith("plane fill") for d in off.decisions)

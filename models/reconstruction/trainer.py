@@ -35,6 +35,7 @@ from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
+from .plane_fill import plane_fill_gaussians
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 log = logging.getLogger("models.reconstruction")
@@ -70,6 +71,7 @@ class Trainer:
         self.decisions: list[str] = []
         self.weights = self._active_losses()
         self.reflections = self._needs_reflections()
+        init, n_prior = self._plane_fill(init)
         self.far_field = self._needs_far_field(init)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
@@ -84,6 +86,10 @@ class Trainer:
         self._one = torch.ones((), device=self.device)
         self.optimizer = self._make_optimizer()
         self.anchors = Anchors(self.device, self.params["means"].dtype)  # fill Gaussians kept near their placing
+        # Gaussians a prior placed where no training view looks (plane_fill.py): never pruned for want of weight
+        self.prior = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
+        self.prior[len(self.prior) - n_prior:] = True
+        self._prior_rows: tuple[torch.Tensor, torch.Tensor] | None = None  # (mask, its row indices), see _freeze_priors
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
         for d in self.decisions:
@@ -132,6 +138,21 @@ class Trainer:
         self.decisions.append(f"reflections: on after step {self.config.warmup}, "
                               f"max path length {self.config.max_path_length}{stop}")
         return True
+
+    def _plane_fill(self, init: Gaussians) -> tuple[Gaussians, int]:
+        """``init`` with the plane fill's Gaussians appended (``plane_fill_count`` > 0), and their count."""
+        if self.config.plane_fill_count <= 0:
+            return init, 0
+        fill, stats = plane_fill_gaussians(self.rays, self.config.plane_fill_count, seed=self.config.seed)
+        message = (f"plane fill: {stats['added']} Gaussians on the unseen parts of {stats['bounding']} planes that "
+                   f"bound the room (of {stats['planes']} planes in the buffers; grid {stats['spacing']:.3g})")
+        self.decisions.append(message)
+        for note in stats.get("notes", ()):
+            self.decisions.append(note)
+        if fill is None:
+            return init, 0
+        fill = fill.to(init.device, init.dtype)
+        return Gaussians(**{k: torch.cat([v.detach(), getattr(fill, k)]) for k, v in init.params().items()}), len(fill)
 
     def _needs_far_field(self, init: Gaussians) -> bool:
         mode = self.config.far_field
@@ -211,6 +232,11 @@ class Trainer:
         now, see anchors.py), keeping Adam's state and the anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
+            self.prior = self.prior[keep.to(self.prior.device)]
+            self._prior_rows = None
+        if extra is not None:
+            self.prior = torch.cat([self.prior, torch.zeros(len(extra), dtype=torch.bool, device=self.prior.device)])
+            self._prior_rows = None
         if extra is not None and anchored and self.config.fill_anchor > 0:
             extra = facing_surfels(extra)
             first = len(self.params["means"]) - (0 if keep is None else int((~keep).sum()))
@@ -364,6 +390,7 @@ class Trainer:
         with self.timer.section("autograd"):
             total.backward()
         with self.timer.section("optimizer"):
+            self._freeze_priors()
             self._skip_non_finite()
             self.optimizer.step()
             self._clamp()
@@ -402,7 +429,7 @@ class Trainer:
         height = self.rays.views[0].camera.height
         threshold = self.config.prune_min_weight * (height / REFERENCE_HEIGHT) ** 2
         reflections = self.reflections and self.step >= self.config.warmup
-        keep = self.blending_weights(views, reflections) >= threshold
+        keep = (self.blending_weights(views, reflections) >= threshold) | self.prior
         removed = int((~keep).sum())
         if removed and keep.any():
             self._replace(keep=keep)
@@ -446,6 +473,7 @@ class Trainer:
             "generator": self.generator.get_state(),
             "far_field_added": self.far_field_added,
             "anchors": self.anchors.state_dict(),
+            "prior": self.prior.clone(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -455,9 +483,26 @@ class Trainer:
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
+        self.prior = state.get("prior", torch.zeros(len(self.params["means"]), dtype=torch.bool)).to(self.device)
+        self._prior_rows = None
         self.anchors = Anchors(self.device, self.params["means"].dtype)
         if "anchors" in state:
             self.anchors.load_state_dict(state["anchors"])
+
+    def _freeze_priors(self) -> None:
+        """The prior's Gaussians (plane_fill.py) keep their place, size and orientation on the plane: their geometry
+        gradients are zeroed (Adam's moments stay 0, so they never move). Reflections alone pin down no depth:
+        trained free they swelled into blobs (zoo_corridor: a floor Gaussian grew 1 m tall). Their colour,
+        material and opacity train."""
+        if self._prior_rows is None or len(self._prior_rows[0]) != len(self.prior):
+            self._prior_rows = (self.prior, torch.nonzero(self.prior).reshape(-1))
+        rows = self._prior_rows[1]
+        if len(rows) == 0:
+            return
+        for name in ("means", "quats", "log_scales"):
+            grad = self.params[name].grad
+            if grad is not None:
+                grad.index_fill_(0, rows, 0.0)
 
     def _skip_non_finite(self) -> None:
         """Flag, on the device (no read-back), the parameters whose gradient holds NaN / Inf, and make this step's

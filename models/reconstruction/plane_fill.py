@@ -1,0 +1,221 @@
+"""Plane completion: Gaussians on the unseen parts of the planes that bound a room (walls, floor, ceiling).
+
+Training views rarely see all of a room's walls, floor and ceiling: the part of a wall beside and behind the
+cameras, the ceiling above the frame's top edge. Nothing is reconstructed there, so a test view that turns to it
+looks through the hole at whatever lies beyond (the far field, a fill's stray Gaussian) -- the zoo's corridor
+(the metal wall outside every training frustum) and lamps room (the ceiling) lose most of their error there. A
+path tracer can train only what exists: where a mirror or a metal wall shows the unseen part, the reflection
+losses need Gaussians there to train. Interiors are bounded by a few large planes, so this fill finds them in
+the training views' buffers and covers their unseen parts.
+
+1. Planes: for each direction among the normal buffer's (sampled, and their opposites: a ceiling the cameras
+   barely see faces the floor they see), the peaks of the histogram of the offsets of the points facing it
+   (within 15 degrees; bins of ``tol``) that hold >= ``min_points`` points, refined by least squares.
+2. Bounding planes: nothing lies behind them (fewer than 0.5 % of all points farther than 3 ``tol`` on the side
+   away from the cameras). A table top has the floor behind it; a wall, the floor, the ceiling have nothing.
+3. Candidates: a grid (spacing ``h``) on each bounding plane, inside the scene box (the points' 0.5-99.5 %
+   box, widened to hold every camera and every bounding plane's points) and on the room's side of every other bounding plane (a floor does not
+   reach past the walls).
+4. Unseen: farther than 1.5 h from every pixel point, and not seen to be empty by any training view
+   (``seen_empty``: inside its frustum, nearer than 0.9 x that pixel's depth, or on a pixel that hits nothing).
+   So a doorway, a window onto the outside, or the room's other leg in view stay open.
+5. One Gaussian per unseen grid point: isotropic (scale 0.6 h), opacity ``opacity``, normal = the plane's,
+   diffuse / F0 / roughness = medians over the plane's 16 nearest points (what its seen part is made of).
+
+The trainer adds them before warm-up and never prunes them for want of blending weight (no training view may
+see them: what nothing observes is the prior's to say); training changes them where reflections see them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from models.gaussians import Gaussians
+
+from .reflection_fill import seen_empty
+
+COS_NORMAL = math.cos(math.radians(15.0))  # a point's normal within this of the plane's: the plane's point
+
+
+def pixel_points(rays, max_points: int, seed: int = 0) -> dict[str, np.ndarray] | None:
+    """The world points of the training pixels that hit something and have a normal (origin + depth x unit
+    direction; the capture's depth is the distance along the ray), with their buffers, up to ``max_points``
+    sampled: {"points", "normals", "diffuse", "f0", "roughness"} as float64 arrays; None without depth / normals."""
+    t = rays.targets
+    if "depth" not in t or "normal" not in t:
+        return None
+    depth = t["depth"].reshape(-1)
+    normal = t["normal"].reshape(-1, 3)
+    ok = rays.mask & (depth > 0) & (normal.norm(dim=-1) > 0.5)
+    idx = torch.nonzero(ok).reshape(-1)
+    if len(idx) > max_points:
+        g = torch.Generator().manual_seed(seed)
+        idx = idx[torch.randperm(len(idx), generator=g)[:max_points]].sort().values
+    pts = rays.origins[idx] + rays.dirs[idx] * depth[idx, None]
+    out = {"points": pts, "normals": torch.nn.functional.normalize(normal[idx], dim=-1)}
+    n = len(idx)
+    out["diffuse"] = t["diffuse"][idx].reshape(n, 3) if "diffuse" in t else torch.full((n, 3), 0.5)
+    out["f0"] = t["f0"][idx].reshape(n, 3) if "f0" in t else torch.full((n, 3), 0.04)
+    out["roughness"] = t["roughness"][idx].reshape(n) if "roughness" in t else torch.full((n,), 1.0)
+    return {k: v.detach().double().cpu().numpy() for k, v in out.items()}
+
+
+def find_planes(points: np.ndarray, normals: np.ndarray, tol: float, min_points: int = 100, seeds: int = 256,
+                seed: int = 0) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """Planes (module docstring, step 1): [(unit normal, offset d: n . x = d, inlier indices)], most points
+    first. ``points``, ``normals``: [M, 3]. Directions: the normals of ``seeds`` sampled points and their
+    opposites (a ceiling the cameras barely see faces the floor they see), merged within 15 degrees; per
+    direction, the offsets of the points facing it are histogrammed (bins of ``tol``) and every local peak of two
+    adjacent bins holding >= ``min_points`` is a plane, refined by least squares over its points."""
+    rng = np.random.default_rng(seed)
+    m = len(points)
+    dirs: list[np.ndarray] = []
+    for k in rng.choice(m, size=min(seeds, m), replace=False):
+        for cand in (normals[k], -normals[k]):
+            if all(cand @ e <= COS_NORMAL for e in dirs):
+                dirs.append(cand)
+    planes = []
+    taken = np.zeros(m, dtype=bool)
+    for e in dirs:
+        facing = np.nonzero((normals @ e > COS_NORMAL) & ~taken)[0]
+        if len(facing) < min_points:
+            continue
+        off = points[facing] @ e
+        edges = np.arange(off.min() - tol, off.max() + 2 * tol, tol)
+        hist = np.histogram(off, bins=edges)[0]
+        pair = hist[:-1] + hist[1:] if len(hist) > 1 else hist
+        for b in np.argsort(-pair):
+            if pair[b] < min_points:
+                break
+            if (b > 0 and pair[b - 1] > pair[b]) or (b + 1 < len(pair) and pair[b + 1] > pair[b]):
+                continue  # not a local peak
+            inl = facing[np.abs(off - edges[b + 1]) < tol]
+            inl = inl[~taken[inl]]
+            if len(inl) < min_points:
+                continue
+            c = points[inl].mean(0)
+            normal = np.linalg.svd(points[inl] - c, full_matrices=False)[2][2]
+            normal = normal if normal @ e >= 0 else -normal
+            d = float(normal @ c)
+            inl = facing[(np.abs(points[facing] @ normal - d) < tol) & ~taken[facing]]
+            if len(inl) < min_points:
+                continue
+            planes.append((normal, d, inl))
+            taken[inl] = True
+    planes.sort(key=lambda p: -len(p[2]))
+    return planes
+
+
+def bounding(planes, points: np.ndarray, cameras: np.ndarray, tol: float, behind_share: float = 0.005):
+    """The planes with (next to) nothing behind them (module docstring, step 2), normals turned to face the
+    cameras' centre: [(normal, d, inliers)]."""
+    centre = cameras.mean(0)
+    out = []
+    for n, d, inl in planes:
+        if n @ centre - d < 0:
+            n, d = -n, -d
+        behind = float(np.mean(points @ n - d < -3 * tol))
+        if behind < behind_share:
+            out.append((n, d, inl))
+    return out
+
+
+def _grid(n: np.ndarray, d: float, lo: np.ndarray, hi: np.ndarray, h: float) -> np.ndarray:
+    """Points of a square grid (spacing h) on the plane n . x = d inside the box [lo, hi]."""
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    base = n * d
+    cu, cv = (corners - base) @ u, (corners - base) @ v
+    a = np.arange(cu.min(), cu.max() + h, h)
+    b = np.arange(cv.min(), cv.max() + h, h)
+    if len(a) * len(b) > 4_000_000:
+        return np.zeros((0, 3))
+    aa, bb = np.meshgrid(a, b, indexing="ij")
+    pts = base + aa.reshape(-1, 1) * u + bb.reshape(-1, 1) * v
+    return pts[((pts >= lo) & (pts <= hi)).all(1)]
+
+
+def _surfels(pos: np.ndarray, normal: np.ndarray, h: float, opacity: float, src: dict, idx: np.ndarray,
+             dtype) -> Gaussians:
+    n = len(pos)
+    f = dict(dtype=dtype)
+    med = lambda a: torch.tensor(np.median(a[idx], axis=1), **f)  # noqa: E731  [n, 16, ...] -> [n, ...]
+    return Gaussians(
+        means=torch.tensor(pos, **f),
+        quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
+        log_scales=torch.full((n, 3), math.log(0.6 * h), **f),
+        opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
+        diffuse=med(src["diffuse"]).clamp_min(0.0).reshape(n, 3),
+        normals=torch.tensor(normal, **f).reshape(1, 3).repeat(n, 1),
+        roughness=med(src["roughness"]).clamp(0.0, 1.0).reshape(n),
+        f0=med(src["f0"]).clamp(0.0, 1.0).reshape(n, 3),
+    )
+
+
+@torch.no_grad()
+def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.6, tol_fraction: float = 0.01,
+                         min_points: int = 100, seed: int = 0,
+                         dtype=torch.float32) -> tuple[Gaussians | None, dict]:
+    """Up to ``count`` Gaussians on the unseen parts of the room's bounding planes (module docstring), from the
+    training rays (a ``RaySet`` with depth and normal targets). Returns (Gaussians or None, statistics)."""
+    stats = {"planes": 0, "bounding": 0, "unseen": 0, "added": 0, "spacing": 0.0, "notes": []}
+    src = pixel_points(rays, max_points=400000, seed=seed)
+    if src is None or len(src["points"]) < 100:
+        stats["notes"] = ["plane fill: off, the capture has no depth and normal buffers on enough pixels"]
+        return None, stats
+    pts = src["points"]
+    lo, hi = np.quantile(pts, [0.005, 0.995], axis=0)
+    size = float((hi - lo).max())
+    tol = tol_fraction * size
+    cams = np.stack([v.camera.origin for v in rays.views])
+    lo, hi = np.minimum(lo, cams.min(0)), np.maximum(hi, cams.max(0))
+    planes = find_planes(pts, src["normals"], tol, min_points=min_points, seed=seed)
+    bound = bounding(planes, pts, cams, tol)
+    stats["planes"], stats["bounding"] = len(planes), len(bound)
+    if not bound:
+        return None, stats
+    for _, _, inl in bound:  # a plane the cameras barely see (a ceiling) lies outside the points' quantile box
+        lo, hi = np.minimum(lo, pts[inl].min(0)), np.maximum(hi, pts[inl].max(0))
+    tree = cKDTree(pts)
+    h = size / 100.0
+    for _ in range(4):  # coarsen the grid until the unseen points fit the budget
+        cand, owner = [], []
+        for i, (n, d, _) in enumerate(bound):
+            g = _grid(n, d, lo - tol, hi + tol, h)
+            inside = np.ones(len(g), dtype=bool)
+            for j, (n2, d2, _) in enumerate(bound):
+                if j != i:
+                    inside &= g @ n2 - d2 > -tol
+            g = g[inside]
+            g = g[tree.query(g, k=1)[0] > 1.5 * h] if len(g) else g
+            cand.append(g)
+            owner.append(np.full(len(g), i))
+        cand, owner = np.concatenate(cand), np.concatenate(owner)
+        if len(cand):
+            keep = ~seen_empty(torch.from_numpy(cand), rays.views).numpy()
+            cand, owner = cand[keep], owner[keep]
+        if len(cand) <= count:
+            break
+        h *= math.sqrt(len(cand) / count) * 1.05
+    cand, owner = cand[:count], owner[:count]
+    stats["unseen"], stats["spacing"] = int(len(cand)), float(h)
+    if not len(cand):
+        return None, stats
+    parts = []
+    for i, (n, d, inl) in enumerate(bound):
+        sel = owner == i
+        if not sel.any():
+            continue
+        k = min(16, len(inl))
+        _, nearest = cKDTree(pts[inl]).query(cand[sel], k=k)
+        nearest = inl[np.asarray(nearest).reshape(int(sel.sum()), k)]
+        parts.append(_surfels(cand[sel], n, h, opacity, src, nearest, dtype))
+    fill = Gaussians(**{k: torch.cat([getattr(p, k) for p in parts]) for k in parts[0].params()})
+    stats["added"] = len(fill)
+    return fill, stats

@@ -1,0 +1,158 @@
+"""Plane completion: cameras in one end of a closed room (a small opening in the back wall onto the outside, a
+table, one brushed-metal wall) see the floor, walls and ceiling only in front of them; the fill covers the
+unseen parts of the planes that bound the room, with each plane's material, and nothing else: not the table's
+plane (the floor lies behind it), not the opening (seen through), not the wall no camera sees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from models.capture import View
+from models.capture.camera import Camera
+from models.reconstruction.data import RaySet
+from models.reconstruction.plane_fill import bounding, find_planes, pixel_points, plane_fill_gaussians
+from models.reconstruction.reflection_fill import seen_empty
+
+FLOOR, CEILING, LEFT, METAL, BACK, FRONT, TABLE = (0.6, 0.5, 0.4), (0.8, 0.8, 0.8), (0.3, 0.6, 0.3), \
+    (0.0, 0.0, 0.0), (0.7, 0.7, 0.7), (0.9, 0.2, 0.2), (0.2, 0.1, 0.05)
+OPENING = ((-0.1, 0.1), (1.1, 1.3))  # x, y of the hole in the back wall z = -2
+
+
+def _rects():
+    """(axis, position, normal sign, (lo, hi) of the other two axes in order, colour, f0, roughness, hole)."""
+    room = [(1, 0.0, 1, ((-2, 2), (-2, 2)), FLOOR, 0.0, 1.0, None),
+            (1, 2.5, -1, ((-2, 2), (-2, 2)), CEILING, 0.0, 1.0, None),
+            (0, -2.0, 1, ((0, 2.5), (-2, 2)), LEFT, 0.0, 1.0, None),
+            (0, 2.0, -1, ((0, 2.5), (-2, 2)), METAL, 0.9, 0.1, None),
+            (2, -2.0, 1, ((-2, 2), (0, 2.5)), BACK, 0.0, 1.0, OPENING),
+            (2, 2.0, -1, ((-2, 2), (0, 2.5)), FRONT, 0.0, 1.0, None),
+            (2, -6.0, 1, ((-8, 8), (-4, 8)), BACK, 0.0, 1.0, None),  # the outside, seen through the opening
+            (1, 0.7, 1, ((-0.6, 0.6), (-1.2, -0.4)), TABLE, 0.0, 1.0, None)]
+    return room
+
+
+def _cast(o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
+    """Nearest rectangle along each ray: depth (distance), normal, diffuse, f0, roughness. ``d`` unit [N, 3]."""
+    n = len(d)
+    best = np.full(n, np.inf)
+    out = {"normal": np.zeros((n, 3)), "diffuse": np.zeros((n, 3)), "f0": np.zeros((n, 3)),
+           "roughness": np.zeros((n, 1))}
+    for axis, pos, sign, bounds, colour, f0, rough, hole in _rects():
+        others = [a for a in range(3) if a != axis]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (pos - o[axis]) / d[:, axis]
+        x = o + t[:, None] * d
+        ok = (t > 1e-6) & (t < best) & (d[:, axis] * sign < 0)
+        for a, (lo, hi) in zip(others, bounds):
+            ok &= (x[:, a] >= lo) & (x[:, a] <= hi)
+        if hole is not None:
+            ok &= ~((x[:, 0] > hole[0][0]) & (x[:, 0] < hole[0][1]) & (x[:, 1] > hole[1][0]) & (x[:, 1] < hole[1][1]))
+        best = np.where(ok, t, best)
+        normal = np.zeros(3)
+        normal[axis] = sign
+        out["normal"][ok] = normal
+        out["diffuse"][ok] = colour
+        out["f0"][ok] = f0
+        out["roughness"][ok] = rough
+    out["depth"] = np.where(np.isfinite(best), best, 0.0)[:, None]
+    return out
+
+
+def _view(i: int, position, target, size=(64, 48), fl=30.0) -> View:
+    position, target = np.asarray(position, float), np.asarray(target, float)
+    f = (target - position) / np.linalg.norm(target - position)
+    right = np.cross(f, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, f), -f, position
+    w, h = size
+    cam = Camera(width=w, height=h, fl_x=fl, fl_y=fl, cx=w / 2, cy=h / 2, c2w=c2w)
+    d = cam.ray_directions().reshape(-1, 3)
+    hit = _cast(cam.origin, d)
+    buffers = {k: v.reshape(h, w, -1).astype(np.float32) for k, v in hit.items()}
+    buffers["mask"] = (buffers["depth"] > 0).astype(np.float32)
+    buffers["specular"] = np.zeros((h, w, 3), np.float32)
+    return View(name=f"v{i}", camera=cam, split="train", buffers=buffers)
+
+
+def _rays() -> RaySet:
+    views = [_view(i, (x, y, 1.0), (x * 0.5, 0.9, -2.0)) for i, (x, y) in
+             enumerate([(x, y) for x in (-0.6, 0.0, 0.6) for y in (1.2, 1.5)])]
+    o, d, m, targets, vid = [], [], [], {k: [] for k in ("depth", "normal", "diffuse", "f0", "roughness")}, []
+    for i, v in enumerate(views):
+        dirs = v.camera.ray_directions().reshape(-1, 3)
+        o.append(np.broadcast_to(v.camera.origin, dirs.shape))
+        d.append(dirs)
+        m.append(v.buffers["mask"].reshape(-1) > 0.5)
+        vid.append(np.full(len(dirs), i))
+        for k in targets:
+            targets[k].append(v.buffers[k].reshape(len(dirs), -1))
+    t = lambda a: torch.tensor(np.concatenate(a), dtype=torch.float32)  # noqa: E731
+    return RaySet(t(o), t(d), torch.tensor(np.concatenate(m)), {k: t(v) for k, v in targets.items()},
+                  torch.tensor(np.concatenate(vid)), views)
+
+
+@pytest.fixture(scope="module")
+def rays():
+    return _rays()
+
+
+@pytest.fixture(scope="module")
+def fill(rays):
+    return plane_fill_gaussians(rays, count=100000)
+
+
+def _on(p: np.ndarray, n: np.ndarray, axis: int, pos: float, sign: int, tol: float) -> np.ndarray:
+    return (np.abs(p[:, axis] - pos) < tol) & (n[:, axis] * sign > 0.99)
+
+
+def test_the_bounding_planes_are_the_seen_walls_floor_and_ceiling_not_the_table(rays):
+    src = pixel_points(rays, 10**6)
+    pts = src["points"]
+    tol = 0.01 * float(np.ptp(np.quantile(pts, [0.005, 0.995], axis=0), axis=0).max())
+    cams = np.stack([v.camera.origin for v in rays.views])
+    found = bounding(find_planes(pts, src["normals"], tol), pts, cams, tol)
+    planes = {(int(np.argmax(np.abs(n))), round(float(d * np.sign(n[np.argmax(np.abs(n))])), 2))
+              for n, d, _ in found if np.abs(n).max() > 0.99}
+    # floor, ceiling (seen at the top of the frames), both side walls, the back wall (its opening is small)
+    assert {(1, 0.0), (1, 2.5), (0, -2.0), (0, 2.0), (2, -2.0)} <= planes
+    assert (1, 0.7) not in planes  # the table top: the floor lies behind it
+    assert all(abs(d) > 1.5 for (a, d) in planes if a == 2) and (2, 2.0) not in planes  # no camera sees the front
+
+
+def test_the_fill_covers_the_unseen_parts_of_those_planes_only(rays, fill):
+    g, stats = fill
+    assert g is not None and stats["added"] == len(g) > 1000
+    p, n = g.means.numpy().astype(float), g.normals.numpy().astype(float)
+    tol = 0.06
+    on = {name: _on(p, n, *plane, tol) for name, plane in
+          {"floor": (1, 0.0, 1), "ceiling": (1, 2.5, -1), "left": (0, -2.0, 1), "metal": (0, 2.0, -1),
+           "back": (2, -2.0, 1)}.items()}
+    assert np.logical_or.reduce(list(on.values())).all()  # every Gaussian on a wall, the floor or the ceiling
+    # the floor under and just in front of the cameras is unseen: covered, with the floor's colour and material
+    # (the box the fill stays in ends at the cameras: what lies behind them, nothing shows)
+    behind = on["floor"] & (p[:, 2] > 0.3)
+    assert behind.sum() > 500
+    np.testing.assert_allclose(g.diffuse.numpy()[behind].mean(0), FLOOR, atol=0.02)
+    # the metal wall's unseen part keeps its metal (no diffuse, F0 0.9, roughness 0.1): reflections can train it
+    metal = on["metal"] & (p[:, 2] > 0.3)
+    assert metal.sum() > 100
+    assert np.abs(g.diffuse.numpy()[metal]).max() < 0.01
+    np.testing.assert_allclose(g.f0.numpy()[metal], 0.9, atol=0.01)
+    np.testing.assert_allclose(g.roughness.numpy()[metal], 0.1, atol=0.01)
+    # nothing a camera sees to be empty (the opening, the room in front of the walls)
+    assert not seen_empty(g.means, rays.views).any()
+    hole = on["back"] & (p[:, 0] > OPENING[0][0] + tol) & (p[:, 0] < OPENING[0][1] - tol) & \
+        (p[:, 1] > OPENING[1][0] + tol) & (p[:, 1] < OPENING[1][1] - tol)
+    assert not hole.any()
+
+
+def test_the_fill_fits_its_budget_and_says_why_it_is_off(rays):
+    g, stats = plane_fill_gaussians(rays, count=500)
+    assert len(g) <= 500 and stats["spacing"] > 0.04
+    bare = RaySet(rays.origins, rays.dirs, rays.mask, {k: v for k, v in rays.targets.items() if k != "normal"},
+                  rays.view_of_ray, rays.views)
+    g, stats = plane_fill_gaussians(bare)
+    assert g is None and "no depth and normal buffers" in stats["notes"][0]
