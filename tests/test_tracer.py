@@ -342,6 +342,20 @@ def _check_edge(gs64: Gaussians, origins, dirs, cfg=None, device="cpu"):
     return out
 
 
+def test_mostly_transparent_scene_renders_and_ends():
+    """Most Gaussians below alpha_min (empty boxes): the interval traversal's window is sized from the median
+    box diagonal of those that can be hit. (Sized over all, it was 0, no window ever advanced: a hang.)"""
+    gs, origins, dirs = scene_and_rays(fresh_seed(), n=300, res=8)
+    seed = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        gs.opacity_logits[torch.rand(len(gs.means), generator=seed) < 0.7] = -20.0
+    _check_edge(gs.to(dtype=torch.float64), origins, dirs)
+    with torch.no_grad():
+        gs.opacity_logits[:] = -20.0  # nothing can be hit
+    out = _check_edge(gs.to(dtype=torch.float64), origins, dirs)
+    assert (out.transmittance == 1).all() and (out.hit_count == 0).all()
+
+
 def test_ray_parallel_to_flat_gaussian():
     # flat in z (scale 1e-4), ray travelling in the plane z = 0 and slightly off it
     gs = _single([0.0, 0.0, 0.0], [1, 0, 0, 0], [-1.0, -1.0, -9.2], 2.0)

@@ -138,9 +138,14 @@ class Tracer:
             dev = torch_device_for(self.device) or torch.device("cpu")
             lowers, uppers = to_torch(self.bvh.lowers, dev), to_torch(self.bvh.uppers, dev)
             stride = max(1, self.bvh.count // 4096)  # a strided sample: cheap at every training step
-            box_diagonal = (uppers[::stride] - lowers[::stride]).norm(dim=1).median()
+            diagonals = (uppers[::stride] - lowers[::stride]).norm(dim=1)
+            # over the Gaussians that can be hit: one below alpha_min has an empty box (a point), and a median of
+            # zero made the first window empty and every later one too (x4 of nothing): the ray never advanced
+            box_diagonal = torch.where(diagonals > 0, diagonals, torch.nan).nanmedian()
             lo, hi = lowers.min(0).values, uppers.max(0).values  # (faster than amin / amax over [N, 3] on a CPU)
-            values = torch.cat([lo, hi, box_diagonal.reshape(1), (hi - lo).norm().reshape(1)]).tolist()
+            scene = (hi - lo).norm()
+            box_diagonal = torch.where(box_diagonal.isnan(), scene.clamp_min(1e-6), box_diagonal)
+            values = torch.cat([lo, hi, box_diagonal.reshape(1), scene.reshape(1)]).tolist()
             if not all(math.isfinite(v) for v in values):  # (NaN propagates through min / max)
                 raise FloatingPointError("non-finite Gaussian bounds (NaN / Inf in means, quats or log_scales): "
                                          "the BVH traversal would not end")
