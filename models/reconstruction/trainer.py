@@ -71,8 +71,10 @@ class Trainer:
         self.decisions: list[str] = []
         self.weights = self._active_losses()
         self.reflections = self._needs_reflections()
-        init, n_prior = self._plane_fill(init)
+        # the far field is decided on what the cameras saw, not on the prior: the plane fill closes a room's box
+        # where it can, and what lies outside that box (a wall never seen, behind the cameras) is the far field's
         self.far_field = self._needs_far_field(init)
+        init, n_prior = self._plane_fill(init)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.far_field_added = False
