@@ -164,7 +164,8 @@ def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.6, tol_fra
                          dtype=torch.float32) -> tuple[Gaussians | None, dict]:
     """Up to ``count`` Gaussians on the unseen parts of the room's bounding planes (module docstring), from the
     training rays (a ``RaySet`` with depth and normal targets). Returns (Gaussians or None, statistics)."""
-    stats = {"planes": 0, "bounding": 0, "unseen": 0, "added": 0, "spacing": 0.0, "notes": []}
+    stats = {"planes": 0, "bounding": 0, "unseen": 0, "added": 0, "spacing": 0.0, "spacing_fraction": 0.0,
+             "notes": []}
     src = pixel_points(rays, max_points=400000, seed=seed)
     if src is None or len(src["points"]) < 100:
         stats["notes"] = ["plane fill: off, the capture has no depth and normal buffers on enough pixels"]
@@ -204,7 +205,7 @@ def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.6, tol_fra
             break
         h *= math.sqrt(len(cand) / count) * 1.05
     cand, owner = cand[:count], owner[:count]
-    stats["unseen"], stats["spacing"] = int(len(cand)), float(h)
+    stats["unseen"], stats["spacing"], stats["spacing_fraction"] = int(len(cand)), float(h), float(h / size)
     if not len(cand):
         return None, stats
     parts = []
