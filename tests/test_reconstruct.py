@@ -282,5 +282,5 @@ def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carr
     again = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
     again.load_checkpoint(tmp_path / "last.pt")
     assert torch.equal(again.prior, trainer.prior)
-    off = Trainer(capture, init, ReconstructConfig.from_dict(SMALL), tracer())
+    off = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0)), tracer())
     assert not off.prior.any() and not any(d.startswith("plane fill") for d in off.decisions)
