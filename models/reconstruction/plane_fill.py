@@ -14,8 +14,8 @@ the training views' buffers and covers their unseen parts.
 2. Bounding planes: nothing lies behind them (fewer than 0.5 % of all points farther than 3 ``tol`` on the side
    away from the cameras). A table top has the floor behind it; a wall, the floor, the ceiling have nothing.
 3. Candidates: a grid (spacing ``h``) on each bounding plane, inside the scene box (the points' 0.5-99.5 %
-   box, widened to hold every camera and every bounding plane's points) and on the room's side of every other bounding plane (a floor does not
-   reach past the walls).
+   box, widened to hold every camera and every bounding plane's points) and on the room's side of every other
+   bounding plane (a floor does not reach past the walls).
 4. Unseen: farther than 1.5 h from every pixel point, and not seen to be empty by any training view
    (``seen_empty``: inside its frustum, nearer than 0.9 x that pixel's depth, or on a pixel that hits nothing).
    So a doorway, a window onto the outside, or the room's other leg in view stay open.

@@ -147,8 +147,8 @@ class Trainer:
             return init, 0
         fill, stats = plane_fill_gaussians(self.rays, self.config.plane_fill_count, seed=self.config.seed)
         message = (f"plane fill: {stats['added']} Gaussians on the unseen parts of {stats['bounding']} planes that "
-                   f"bound the room (of {stats['planes']} planes in the buffers; grid spacing {stats['spacing_fraction']:.4f} of "
-                   f"the room's size)")
+                   f"bound the room (of {stats['planes']} planes in the buffers; grid spacing "
+                   f"{stats['spacing_fraction']:.4f} of the room's size)")
         self.decisions.append(message)
         for note in stats.get("notes", ()):
             self.decisions.append(note)

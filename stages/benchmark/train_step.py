@@ -77,8 +77,8 @@ class TrainStepBenchmarkConfig:
 
 def _trainer(capture, init, rays_per_step: int, tracer: Tracer, cfg: TrainStepBenchmarkConfig) -> Trainer:
     recon = ReconstructConfig(iterations=10**9, warmup=0, rays_per_step=rays_per_step, far_field="off",
-                              plane_fill_count=0, prune_every=0, max_path_length=cfg.max_path_length, checkpoint_every=10**9,
-                              seed=cfg.seed)
+                              plane_fill_count=0, prune_every=0, max_path_length=cfg.max_path_length,
+                              checkpoint_every=10**9, seed=cfg.seed)
     return Trainer(capture, init, recon, tracer)
 
 
