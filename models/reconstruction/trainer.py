@@ -91,7 +91,7 @@ class Trainer:
         # Gaussians a prior placed where no training view looks (plane_fill.py): never pruned for want of weight
         self.prior = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self.prior[len(self.prior) - n_prior:] = True
-        self._prior_rows: tuple[torch.Tensor, torch.Tensor] | None = None  # (mask, its row indices), see _freeze_priors
+        self._prior_rows: torch.Tensor | None = None  # rows of ``prior`` (made when first needed), see _freeze_priors
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
         for d in self.decisions:
@@ -497,9 +497,9 @@ class Trainer:
         gradients are zeroed (Adam's moments stay 0, so they never move). Reflections alone pin down no depth:
         trained free they swelled into blobs (zoo_corridor: a floor Gaussian grew 1 m tall). Their colour,
         material and opacity train."""
-        if self._prior_rows is None or len(self._prior_rows[0]) != len(self.prior):
-            self._prior_rows = (self.prior, torch.nonzero(self.prior).reshape(-1))
-        rows = self._prior_rows[1]
+        if self._prior_rows is None:  # reset wherever ``prior`` changes (_replace, load_state_dict)
+            self._prior_rows = torch.nonzero(self.prior).reshape(-1)
+        rows = self._prior_rows
         if len(rows) == 0:
             return
         for name in ("means", "quats", "log_scales"):
