@@ -104,6 +104,9 @@ def test_errors_on_bright_pixels_lose_psnr():
 
 def test_mu_law_and_peak():
     assert hdr.mu_law(np.array([0.0, 3.0, -3.0]), 3.0).tolist() == [0.0, 1.0, -1.0]
+    x = np.array([0.0, 1e-4, 0.3, 3.0, -2.0, 12.0], dtype=np.float32)
+    on_torch = hdr.mu_law(torch.from_numpy(x), 3.0)  # the trainer's batch scores: a float64 tensor, same values
+    assert on_torch.dtype == torch.float64 and np.array_equal(on_torch.numpy(), hdr.mu_law(x, 3.0))
     assert hdr.peak(np.zeros((4, 4, 3))) == 1.0 and hdr.peak(np.full((2, 2, 3), 7.0)) == 7.0
     x = np.array([0.5])
     assert psnr(x, x + 0.1, peak=2.0) == pytest.approx(20 + 20 * math.log10(2.0))

@@ -207,6 +207,35 @@ def test_ray_batches_are_the_rayset_rows():
             assert torch.equal(a.targets[name], b.targets[name]), name
 
 
+def test_training_batch_is_also_scored_tonemapped_at_the_training_peak():
+    """Besides the linear PSNRs (peak 1), the log carries mu-law PSNRs of diffuse, specular and their sum at the
+    peak of the training targets (a lamp at 10 makes a linear score follow its few rays): equal to evaluate's
+    numpy scoring of the same batch."""
+    from models.metrics import hdr
+
+    capture, init = _room()
+    trainer = Trainer(capture, init, _room_config(), tracer())
+    final = trainer.rays.targets["diffuse"] + trainer.rays.targets["specular"]
+    assert trainer.peak == pytest.approx(float(final.max())) and trainer.peak > 0
+    seen = {}
+    score = trainer._loss_terms
+
+    def spy(batch, out, reflections):
+        seen.update(batch=batch, out=out)
+        return score(batch, out, reflections)
+
+    trainer._loss_terms = spy
+    _, metrics = trainer.losses(trainer.sample_batch(), True)
+    b, o = seen["batch"], seen["out"]
+    layers = {"diffuse": (o.primary.diffuse, b.targets["diffuse"]), "specular": (o.specular, b.targets["specular"])}
+    layers["final"] = (layers["diffuse"][0] + layers["specular"][0], layers["diffuse"][1] + layers["specular"][1])
+    for layer, (pred, target) in layers.items():
+        pred, target = pred.detach().numpy(), target.numpy().reshape(pred.shape)
+        expect = psnr(hdr.mu_law(pred, trainer.peak), hdr.mu_law(target, trainer.peak))
+        assert metrics[f"psnr_{layer}_tonemapped"] == pytest.approx(expect, abs=1e-6), layer
+        assert metrics[f"psnr_{layer}"] == pytest.approx(psnr(pred, target), abs=1e-6), layer
+
+
 def test_non_finite_gradients_skip_the_update_and_stop_training(tmp_path):
     """A step with a non-finite gradient leaves parameters and Adam's state as they were (flagged on the device);
     the flags are read back every FINITE_CHECK_EVERY steps and before every checkpoint (not per step)."""

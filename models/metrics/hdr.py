@@ -30,8 +30,12 @@ def peak(target) -> float:
     return m if np.isfinite(m) and m > 0 else 1.0
 
 
-def mu_law(x, peak_value: float, mu: float = MU) -> np.ndarray:
-    """sign(x) log(1 + mu |x| / peak) / log(1 + mu) in float64: 0 -> 0, peak -> 1, no clamp."""
+def mu_law(x, peak_value: float, mu: float = MU):
+    """sign(x) log(1 + mu |x| / peak) / log(1 + mu) in float64: 0 -> 0, peak -> 1, no clamp. A torch tensor stays
+    one (float64, on its device: the trainer's batch scores, no read-back); anything else becomes numpy."""
+    if type(x).__module__.startswith("torch"):
+        t = x.detach().double() / peak_value
+        return t.sign() * (mu * t.abs()).log1p() / np.log1p(mu)
     x = np.asarray(x, dtype=np.float64) / peak_value
     return np.sign(x) * np.log1p(mu * np.abs(x)) / np.log1p(mu)
 

@@ -22,6 +22,7 @@ import torch
 from models.capture import Capture
 from models.capture.layers import GBUFFER, RADIANCE
 from models.gaussians import Gaussians
+from models.metrics import hdr
 from models.metrics.image import mse_to_psnr
 from models.pathtrace.paths import PathConfig, trace_paths
 from models.profiling import NO_TIMER
@@ -71,6 +72,11 @@ class Trainer:
         self.decisions: list[str] = []
         self.weights = self._active_losses()
         self.reflections = self._needs_reflections()
+        # the tonemapped training scores' peak (as evaluate's: the ground truth's max, here over every training
+        # ray's diffuse + emission + specular): a lamp or its reflection at 10 makes the linear PSNR (peak 1)
+        # follow the few brightest rays only
+        final = self.rays.targets["diffuse"] + self.rays.targets.get("specular", 0.0)
+        self.peak = hdr.peak(float(final.max())) if final.numel() else 1.0
         # the far field is decided on what the cameras saw, not on the prior: the plane fill closes a room's box
         # where it can, and what lies outside that box (a wall never seen, behind the cameras) is the far field's
         self.far_field = self._needs_far_field(init)
@@ -311,11 +317,15 @@ class Trainer:
             else:
                 terms[layer] = w * err.mean() if err.numel() else pred.sum() * 0
         total = sum(terms.values())
-        names = [*(f"loss_{k}" for k in terms), "loss", "mse_diffuse"]
-        values = [*terms.values(), total, _mse(out.primary.diffuse, batch.targets["diffuse"])]
+        names = [*(f"loss_{k}" for k in terms), "loss"]
+        values = [*terms.values(), total]
+        scored = {"diffuse": (out.primary.diffuse, batch.targets["diffuse"])}
         if reflections and "specular" in batch.targets:
-            names.append("mse_specular")
-            values.append(_mse(out.specular, batch.targets["specular"]))
+            scored["specular"] = (out.specular, batch.targets["specular"])
+            scored["final"] = (out.primary.diffuse + out.specular, batch.targets["diffuse"] + batch.targets["specular"])
+        for k, (pred, target) in scored.items():
+            names += [f"mse_{k}", f"mse_{k}_tonemapped"]
+            values += [_mse(pred, target), _mse(hdr.mu_law(pred, self.peak), hdr.mu_law(target, self.peak))]
         if out.stopped:  # paths stopped by min_throughput: how many, and their share of the bounce gradient weight
             stopped = torch.stack(out.stopped).sum(0)
             names += ["paths_stopped", "stopped_weight"]
@@ -323,9 +333,9 @@ class Trainer:
         host = dict(zip(names, torch.stack([v.detach().double() for v in values]).tolist()))  # one read-back
         metrics = {k: (round(v, 6) if k == "stopped_weight" else v) for k, v in host.items()
                    if not k.startswith("mse_")}
-        for k in ("diffuse", "specular"):
-            if f"mse_{k}" in host:
-                metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])
+        for k in scored:  # psnr_<layer>: linear at peak 1 (as in logs before); _tonemapped: mu-law at self.peak
+            metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])
+            metrics[f"psnr_{k}_tonemapped"] = mse_to_psnr(host[f"mse_{k}_tonemapped"])
         return total, metrics
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False) -> None:

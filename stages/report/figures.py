@@ -62,11 +62,14 @@ def training_curves(rows: list[dict], warmup: int | None = None) -> str | None:
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
     axes[0].semilogy(step, [r["loss"] for r in rows], color="k", lw=1)
     axes[0].set_title("training loss")
-    for key, colour in (("psnr_diffuse", "tab:blue"), ("psnr_specular", "tab:orange"), ("psnr_final", "tab:green")):
-        values = [(s, r[key]) for s, r in zip(step, rows) if r.get(key) is not None]
-        if values:
-            s, v = zip(*values)
-            axes[1].plot(s, v, color=colour, lw=1, label=key.removeprefix("psnr_"))
+    for layer, colour in (("diffuse", "tab:blue"), ("specular", "tab:orange"), ("final", "tab:green")):
+        # solid: tonemapped (mu-law at the training peak, the headline); dotted: linear at peak 1 (logs before
+        # the tonemapped scores have only these)
+        for key, style, label in ((f"psnr_{layer}_tonemapped", "-", layer), (f"psnr_{layer}", ":", f"{layer} linear")):
+            values = [(s, r[key]) for s, r in zip(step, rows) if r.get(key) is not None]
+            if values:
+                s, v = zip(*values)
+                axes[1].plot(s, v, color=colour, lw=1, ls=style, label=label)
     axes[1].set_title("training-batch PSNR (dB)")
     axes[1].legend(fontsize=8)
     axes[2].plot(step, [r["gaussians"] for r in rows], color="tab:purple", lw=1)
