@@ -207,6 +207,38 @@ def test_ray_batches_are_the_rayset_rows():
             assert torch.equal(a.targets[name], b.targets[name]), name
 
 
+def test_path_length_decision_is_logged_stored_with_the_model_and_checkpointed(demo, monkeypatch):
+    """The demo's mirror faces matte walls: the measured length is the paper's 3 (logged). Where the measurement
+    (tests/test_path_length.py: analytic rooms) says reflections go on, here replaced by one where every path
+    keeps carrying its light, the trainer takes the limit, says the limit cuts them short, stores the length
+    with the model, carries it in checkpoints and never shrinks it; a limit at max_path_length never measures."""
+    import models.reconstruction.trainer as trainer_module
+
+    capture, init = demo
+    cfg = ReconstructConfig.from_dict(SMALL)
+    room = Trainer(capture, init, cfg, tracer())
+    room._decide_path_length()
+    assert room.path_length == 3 and room.settings().path.max_path_length == 3
+    assert any("path length 3 (max_path_length 3, limit 8)" in d for d in room.decisions)
+    real = trainer_module.carried_throughput
+    monkeypatch.setattr(trainer_module, "carried_throughput",
+                        lambda *a, **k: [torch.ones_like(c) for c in real(*a, **k)] + [torch.ones(1)] * 8)
+    room._decide_path_length()
+    assert room.path_length == 8 and room.settings().path.max_path_length == 8
+    assert room.path_config(training=True).max_path_length == 8
+    assert any("path length 8" in d and "the limit cuts them short" in d for d in room.decisions)
+    resumed = Trainer(capture, init, cfg, tracer())
+    resumed.load_state_dict(room.state_dict())
+    assert resumed.path_length == 8
+    monkeypatch.setattr(trainer_module, "carried_throughput", real)
+    resumed._decide_path_length()
+    assert resumed.path_length == 8  # never shrinks
+    capped = Trainer(capture, init, ReconstructConfig.from_dict({**SMALL, "max_path_length_limit": 3}), tracer())
+    monkeypatch.setattr(trainer_module, "carried_throughput", lambda *a, **k: 1 / 0)  # never called
+    capped._decide_path_length()
+    assert capped.path_length == 3
+
+
 def test_training_batch_is_also_scored_tonemapped_at_the_training_peak():
     """Besides the linear PSNRs (peak 1), the log carries mu-law PSNRs of diffuse, specular and their sum at the
     peak of the training targets (a lamp at 10 makes a linear score follow its few rays): equal to evaluate's

@@ -63,6 +63,9 @@ class PathOutput:
     specular: torch.Tensor  # [R, 3] sum over reflection segments of throughput x diffuse cache
     bounces: list[torch.Tensor] = field(default_factory=list)  # [R, 3] per reflection segment (sum = specular)
     alive: list[torch.Tensor] = field(default_factory=list)  # [R] bool, paths still going at each bounce
+    # [R] per bounce: the throughput (max over RGB) a path carries into that reflection segment, 0 where it has
+    # stopped (detached): how much of a path's light is still to come there
+    throughput: list[torch.Tensor] = field(default_factory=list)
     # per bounce, paths stopped by min_throughput: [count, sum of their throughput, sum over every path that could
     # have gone on] (tensors, no read-back; the last two give the share of the gradient weight not traced)
     stopped: list[torch.Tensor] = field(default_factory=list)
@@ -148,6 +151,8 @@ def trace_paths(
             break
         index = index[live]
         throughput = throughput[live] * weight[live].detach()
+        out.throughput.append(torch.zeros(rays, dtype=throughput.dtype, device=origins.device)
+                              .index_put((index,), throughput.amax(-1)))
         d = wi[live]
         o = x[live] + config.origin_offset * d
         grad_scale = (1.0 - rough[live]).clamp_min(0.0) ** config.grad_roughness_power

@@ -54,6 +54,18 @@ class ReconstructConfig:
                                  minimum=0)
     max_path_length: int = setting(_PATH.max_path_length, "path segments (1 = no reflections); stored with the "
                                    "model, renders use it", minimum=1, maximum=16)
+    max_path_length_limit: int = setting(8, "the longest path the path-length decision may choose where mirror-like "
+                                         "surfaces face each other (metal walls, a mirror facing a chrome "
+                                         "object): when reflections turn on, halfway and at the end, reflections "
+                                         "leaving mirror-like training pixels in random directions are traced; "
+                                         "while more than path_tail_rays of them still carry more than "
+                                         "path_tail_throughput after the path length, it grows (up to this; "
+                                         "stored with the model); <= max_path_length: never",
+                                         minimum=1, maximum=16)
+    path_tail_throughput: float = setting(0.2, "see max_path_length_limit: the throughput (max over RGB) a path still "
+                                          "carries that counts it as cut short", exclusiveMinimum=0, maximum=1)
+    path_tail_rays: float = setting(0.05, "see max_path_length_limit: the fraction of those reflections that may be "
+                                    "cut short", minimum=0, maximum=1)
     sampler: str = setting(_PATH.sampler, "reflection sampling: vndf | ndf (reference); stored with the model",
                            enum=["vndf", "ndf"])
     fresnel: str = setting(_PATH.fresnel, "Schlick Fresnel's grazing reflectance: schlick_f90 (F90 = min(1, 50 mean "

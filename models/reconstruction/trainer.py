@@ -8,6 +8,7 @@ exponential position decay, pruning by accumulated blending weight, clamps.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -36,6 +37,7 @@ from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
+from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import plane_fill_gaussians
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
@@ -84,6 +86,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.far_field_added = False
+        # segments per path: the config's until reflections turn on, then what _decide_path_length chose
+        self.path_length: int | None = None
         self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles the step
         # parameters, rays and targets live where the backend traces (a CUDA tracer: on the GPU)
         self.device = getattr(backend, "torch_device", None) or torch.device("cpu")
@@ -143,8 +147,11 @@ class Trainer:
             return False
         stop = (f", paths stop below throughput {self.config.min_throughput:g} in training (paths_stopped and "
                 "stopped_weight in the log)" if self.config.min_throughput > 0 else "")
+        longer = (f" (longer, up to {self.config.max_path_length_limit}, where mirror-like surfaces face each "
+                  "other: decided when they turn on, halfway and at the end)"
+                  if self.config.max_path_length_limit > self.config.max_path_length else "")
         self.decisions.append(f"reflections: on after step {self.config.warmup}, "
-                              f"max path length {self.config.max_path_length}{stop}")
+                              f"max path length {self.config.max_path_length}{longer}{stop}")
         return True
 
     def _plane_fill(self, init: Gaussians) -> tuple[Gaussians, int]:
@@ -290,7 +297,7 @@ class Trainer:
     def losses(self, batch: RaySet, reflections: bool) -> tuple[torch.Tensor, dict]:
         g = self.gaussians()
         self.backend.update(g)
-        path_cfg = (self.config.training_path(self.scene_size) if reflections
+        path_cfg = (self.path_config(training=True) if reflections
                     else PathConfig(max_path_length=1, sampler=self.config.sampler))
         with self.timer.section("path_sampling"):
             out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
@@ -395,6 +402,8 @@ class Trainer:
                                "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
                                "(of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, searched "
                                "%(box_scale_range)s)")
+        if reflections and (self.path_length is None or self.step == (cfg.warmup + cfg.iterations) // 2):
+            self._decide_path_length()
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.position_lr(self.step)
@@ -408,6 +417,8 @@ class Trainer:
             self.optimizer.step()
             self._clamp()
         self.step += 1
+        if reflections and self.step == cfg.iterations:
+            self._decide_path_length()  # the length the model is rendered with, on the trained scene
         if self.step % FINITE_CHECK_EVERY == 0:
             self.check_finite()
         if cfg.prune_every > 0 and self.step >= cfg.prune_from and self.step % cfg.prune_every == 0:
@@ -416,12 +427,65 @@ class Trainer:
         metrics["gaussians"] = len(self.params["means"])
         return metrics
 
+    def path_config(self, training: bool = False) -> PathConfig:
+        """The path settings this run trains with (``training``: with the training-only cut-off) and stores with
+        the model: the config's, with the path length decided when reflections turned on."""
+        cfg = self.config.training_path(self.scene_size) if training else self.config.path(self.scene_size)
+        return cfg if self.path_length is None else dataclasses.replace(cfg, max_path_length=self.path_length)
+
+    def _decide_path_length(self) -> None:
+        """Segments per path from now on, and for renders: the paper's 3 (two reflections, then the diffuse cache)
+        unless mirror-like surfaces face each other. A reflection that ends on a matte surface is exact at 3;
+        one that meets another mirror-like surface reads that surface's diffuse cache, ~0 for a metal, so it goes
+        dark and training pushes the metal's diffuse up to make up for it (zoo_corridor, two facing metal walls:
+        test final 19.2 dB tonemapped at 3, 21.9 at 6). Reflections leave random mirror-like training pixels in
+        cosine-distributed directions (any viewpoint, not only the training ones: the test views of a corridor
+        look at its walls head-on) and are traced through the current scene for up to
+        ``max_path_length_limit`` segments; the length grows while more than ``path_tail_rays`` of them still
+        carry more than ``path_tail_throughput`` after it. Called when reflections turn on, halfway and at the
+        end (a young model's normals disagree and stop paths early); the length never shrinks. In training,
+        paths still stop below ``min_throughput``: a longer length costs only where light does go on."""
+        cfg = self.config
+        base, limit = cfg.max_path_length, max(cfg.max_path_length, cfg.max_path_length_limit)
+        before = self.path_length
+        self.path_length = max(base, before or base)
+        if limit == base or self.path_length >= limit:
+            return
+        found = mirror_rays(self.rays, PATH_DECISION_RAYS, seed=cfg.seed + self.step)
+        if found is None:
+            return
+        x, _, index = found
+        d = self.rays.dirs[index]
+        n = torch.nn.functional.normalize(self.rays.targets["normal"][index], dim=-1)
+        n = torch.where(((n * d).sum(-1) > 0)[:, None], -n, n)  # the side the camera saw
+        g = self.gaussians()
+        self.backend.update(g)
+        carried = carried_throughput(x.to(self.device), n.to(self.device), self.backend.trace, g,
+                                     self.config.training_path(self.scene_size), limit,
+                                     torch.Generator().manual_seed(cfg.seed + 7919 + self.step))
+        self.path_length = max(self.path_length, needed_length(carried, base, limit, cfg.path_tail_throughput,
+                                                               cfg.path_tail_rays))
+
+        def going(length: int) -> float:
+            return going_on(carried, length, cfg.path_tail_throughput)
+
+        if self.path_length == before:
+            return
+        message = (f"path length {self.path_length} (max_path_length {base}, limit {limit}): of {len(n)} "
+                   f"reflections leaving mirror-like training pixels in random directions, {going(base):.1%} "
+                   f"still carry > {cfg.path_tail_throughput:g} of their light after {base} segments, "
+                   f"{going(self.path_length):.1%} after {self.path_length} (allowed: {cfg.path_tail_rays:.0%})")
+        if going(self.path_length) > cfg.path_tail_rays:
+            message += "; the limit cuts them short (raise reconstruct.max_path_length_limit)"
+        log.info("step %d: %s", self.step, message)
+        self.decisions.append(f"step {self.step}: {message}")
+
     def blending_weights(self, views: list[int], reflections: bool = False) -> torch.Tensor:
         """[N] accumulated blending weight per Gaussian, averaged over ``views`` (d sum(diffuse_R) / d diffuse_i,R);
         with ``reflections``, plus its weight in the traced reflections (d sum(specular_R) / d diffuse_i,R:
         bounce Gaussians are the radiance cache), so what the views see only in mirrors is kept too."""
         acc = torch.zeros(len(self.params["means"]), device=self.device)
-        path_cfg = self.config.training_path(self.scene_size)
+        path_cfg = self.path_config(training=True)
         for v in views:
             g = Gaussians(**{k: p.detach().clone().requires_grad_(k == "diffuse") for k, p in self.params.items()})
             self.backend.update(g)
@@ -450,7 +514,7 @@ class Trainer:
 
     def settings(self) -> ModelSettings:
         """How the trained model renders (stored as its model.yaml): this run's tracer and path settings."""
-        return ModelSettings(tracer=self.config.tracer, path=self.config.path(self.scene_size), units=self.units,
+        return ModelSettings(tracer=self.config.tracer, path=self.path_config(), units=self.units,
                              training={"config_hash": config_hash(to_dict(self.config, runtime=False)), "steps": self.step,
                                        "gaussians": len(self.params["means"])})
 
@@ -485,6 +549,7 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "far_field_added": self.far_field_added,
+            "path_length": self.path_length,
             "anchors": self.anchors.state_dict(),
             "prior": self.prior.clone(),
         }
@@ -492,6 +557,9 @@ class Trainer:
     def load_state_dict(self, state: dict) -> None:
         self.step = self.finite_at = state["step"]  # (a checkpoint is written only after a finiteness check)
         self.far_field_added = state["far_field_added"]
+        # checkpoints from before the decision trained with the config's length once reflections were on
+        past_warmup = self.reflections and state["step"] > self.config.warmup
+        self.path_length = state.get("path_length", self.config.max_path_length if past_warmup else None)
         self.params = {k: v.to(self.device).clone().requires_grad_(True) for k, v in state["params"].items()}
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
@@ -585,6 +653,7 @@ def scene_size(gaussians: Gaussians) -> float:
     return size
 
 
+PATH_DECISION_RAYS = 8192  # training rays traced to decide the path length (_decide_path_length)
 RESUME_IGNORED = ("log_every", "checkpoint_every")  # how a run reports, not what it computes
 
 

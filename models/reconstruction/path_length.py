@@ -1,0 +1,64 @@
+"""How long a reflection path a scene needs (the trainer's path-length decision, Trainer._decide_path_length).
+
+The paper's paths have 3 segments: the camera ray, two reflections, then the diffuse layer of what the last one
+hits (the radiance cache). That is exact where a reflection ends on a matte surface. Where mirror-like surfaces
+face each other (two metal walls, a mirror facing a chrome sphere) the cache is read on a mirror-like surface,
+whose diffuse is ~0 for a metal: the reflection goes dark after two bounces. The test here is view-independent:
+reflections leave points on the mirror-like surfaces in cosine-distributed directions (what some viewpoint
+sees there), are traced through the scene, and ``carried_throughput`` gives, per reflection segment, the
+throughput each still carries; ``needed_length`` is the shortest length after which few of them still carry
+much.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from models.gaussians import Gaussians
+from models.pathtrace.paths import PathConfig, TraceFn, trace_paths
+from models.pathtrace.sampling import tangent_frame
+
+
+def cosine_directions(normals: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """[M, 3] unit directions, cosine-distributed around the unit ``normals`` [M, 3]."""
+    t, b = tangent_frame(normals)
+    u1 = torch.rand(len(normals), generator=generator, dtype=normals.dtype)
+    u2 = torch.rand(len(normals), generator=generator, dtype=normals.dtype)
+    r, phi = u1.sqrt(), 2.0 * math.pi * u2
+    return (r * phi.cos())[:, None] * t + (r * phi.sin())[:, None] * b + (1.0 - u1).clamp_min(0.0).sqrt()[:, None] * normals
+
+
+def carried_throughput(points: torch.Tensor, normals: torch.Tensor, trace_fn: TraceFn, scene: Gaussians,
+                       path: PathConfig, max_length: int, generator: torch.Generator) -> list[torch.Tensor]:
+    """Reflections from ``points`` [M, 3] on mirror-like surfaces (unit ``normals`` [M, 3] on the side they are
+    seen from) in cosine-distributed directions, traced through ``scene`` as the reflection segments of camera
+    paths of up to ``max_length`` segments (``path``: origin offset, Fresnel, sampler, min_throughput). Returns
+    ``carried``: ``carried[j]`` [M] (CPU, float64) is the throughput (max over RGB) a path carries into segment
+    j + 3 of its camera path (0 once it has stopped), for j up to max_length - 2 (into segment max_length + 1);
+    the list ends early where every path has stopped."""
+    dirs = cosine_directions(normals.cpu(), generator).to(points.device)  # drawn where the generator lives
+    # segment 1 here is the camera path's 2; one more than max_length - 1 so that carried[max_length - 2] (what
+    # goes on after max_length camera segments) is measured too
+    cfg = dataclasses.replace(path, max_path_length=max(max_length, 2))
+    origins = points + cfg.origin_offset * dirs
+    with torch.no_grad():
+        out = trace_paths(trace_fn, origins, dirs, scene, cfg, generator)
+    return [c.double().cpu() for c in out.throughput]
+
+
+def going_on(carried: list[torch.Tensor], length: int, throughput: float) -> float:
+    """Fraction of the reflections still carrying more than ``throughput`` after ``length`` camera-path segments."""
+    k = length - 2
+    return float((carried[k] > throughput).double().mean()) if 0 <= k < len(carried) else 0.0
+
+
+def needed_length(carried: list[torch.Tensor], base: int, limit: int, throughput: float, fraction: float) -> int:
+    """The shortest length in [base, limit] after which at most ``fraction`` of the reflections still carry more
+    than ``throughput`` (``limit`` when none is)."""
+    length = base
+    while length < limit and going_on(carried, length, throughput) > fraction:
+        length += 1
+    return length
