@@ -28,7 +28,8 @@ def cosine_directions(normals: torch.Tensor, generator: torch.Generator) -> torc
     u1 = torch.rand(len(normals), generator=generator, dtype=normals.dtype)
     u2 = torch.rand(len(normals), generator=generator, dtype=normals.dtype)
     r, phi = u1.sqrt(), 2.0 * math.pi * u2
-    return (r * phi.cos())[:, None] * t + (r * phi.sin())[:, None] * b + (1.0 - u1).clamp_min(0.0).sqrt()[:, None] * normals
+    up = (1.0 - u1).clamp_min(0.0).sqrt()
+    return (r * phi.cos())[:, None] * t + (r * phi.sin())[:, None] * b + up[:, None] * normals
 
 
 def carried_throughput(points: torch.Tensor, normals: torch.Tensor, trace_fn: TraceFn, scene: Gaussians,

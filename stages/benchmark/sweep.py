@@ -105,7 +105,8 @@ def training_points(grid: SweepGrid, base_recon: dict, base_init: dict) -> list[
     """(name, reconstruct overrides, init overrides, training downsample factor) of every training point."""
     recon = ReconstructConfig.from_dict(base_recon)
     points = [("base", {}, {}, 1)]
-    points += [(f"train path {n}", {"max_path_length": n}, {}, 1) for n in grid.path_length
+    # exactly n segments: the limit at n too (else the path-length decision may lengthen it where mirrors face)
+    points += [(f"train path {n}", {"max_path_length": n, "max_path_length_limit": n}, {}, 1) for n in grid.path_length
                if n != recon.max_path_length]
     points += [(f"train res 1/{f}", {}, {}, f) for f in grid.train_downsample if f != 1]
     voxel = base_init.get("voxel_fraction", InitConfig.voxel_fraction)
