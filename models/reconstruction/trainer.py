@@ -473,7 +473,7 @@ class Trainer:
             return
         message = (f"path length {self.path_length} (max_path_length {base}, limit {limit}): of {len(n)} "
                    f"reflections leaving mirror-like training pixels in random directions, {going(base):.1%} "
-                   f"still carry > {cfg.path_tail_throughput:g} of their light after {base} segments, "
+                   f"still carry more than {cfg.path_tail_throughput:g} of their light after {base} segments, "
                    f"{going(self.path_length):.1%} after {self.path_length} (allowed: {cfg.path_tail_rays:.0%})")
         if going(self.path_length) > cfg.path_tail_rays:
             message += "; the limit cuts them short (raise reconstruct.max_path_length_limit)"
