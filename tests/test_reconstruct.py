@@ -207,6 +207,18 @@ def test_ray_batches_are_the_rayset_rows():
             assert torch.equal(a.targets[name], b.targets[name]), name
 
 
+def test_target_normals_face_the_camera():
+    """The tracer blends every Gaussian's normal facing the ray; a capture whose normal buffer faces away (another
+    tool's convention: outward normals of a surface seen from inside) is turned to match, not fought."""
+    capture, _ = _room()
+    before = build_rayset(capture, "train").targets["normal"]
+    for v in capture.split("train"):
+        v.buffers["normal"] = -v.buffers["normal"]
+    rays = build_rayset(capture, "train")
+    assert torch.equal(rays.targets["normal"], before)
+    assert ((rays.targets["normal"] * rays.dirs).sum(-1) <= 0).all()
+
+
 def test_path_length_decision_is_logged_stored_with_the_model_and_checkpointed(demo, monkeypatch):
     """The demo's mirror faces matte walls: the measured length is the paper's 3 (logged). Where the measurement
     (tests/test_path_length.py: analytic rooms) says reflections go on, here replaced by one where every path
