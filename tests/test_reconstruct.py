@@ -208,8 +208,8 @@ def test_ray_batches_are_the_rayset_rows():
 
 
 def test_target_normals_face_the_camera():
-    """The tracer blends every Gaussian's normal facing the ray; a capture whose normal buffer faces away (another
-    tool's convention: outward normals of a surface seen from inside) is turned to match, not fought."""
+    """A capture whose normal buffer faces away from the camera (another tool's convention: outward normals of a
+    surface seen from inside) is the same surface: the targets are turned to face the camera, as synth's are."""
     capture, _ = _room()
     before = build_rayset(capture, "train").targets["normal"]
     for v in capture.split("train"):

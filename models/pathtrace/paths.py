@@ -110,8 +110,7 @@ def trace_paths(
     for _ in range(config.max_path_length - 1):
         # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T), except
         # truncated rays, which the tracer's tail rule already normalised; the normal too: a half-transparent
-        # vertex whose Gaussians agree on their normal reflects, one whose normals cancel out does not (the
-        # tracer turns each Gaussian's normal to face the ray: only disagreeing directions cancel, not sides)
+        # vertex whose Gaussians agree on their normal reflects, one whose normals cancel out does not
         opacity = seg.opacity()
         n_acc = seg.normal.detach()
         n_len = n_acc.norm(dim=-1)

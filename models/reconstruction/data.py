@@ -60,7 +60,8 @@ def build_rayset(capture: Capture, split: str, radiance_clamp: float = 0.0) -> R
         vid.append(np.full(n, i))
         for l in layers:
             t = (diffuse_radiance(v.buffers) if l == "diffuse" else v.buffers[l]).reshape(n, -1)
-            if l == "normal":  # the tracer blends normals facing the ray: a target facing away is the same surface
+            if l == "normal":  # a target facing away from its camera (another tool's outward normals seen from
+                # inside) is the same surface: supervised facing the camera, as every reflection vertex is turned
                 t = np.where((t * di).sum(-1, keepdims=True) > 0, -t, t)
             if radiance_clamp > 0 and l in ("diffuse", "specular"):
                 t = np.minimum(t, radiance_clamp)

@@ -92,9 +92,6 @@ def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps, scope="all
     alpha_s = torch.where(valid_s, torch.gather(alpha, 1, order), torch.zeros_like(key))
     t_s = torch.gather(t, 1, order)
     f_s = torch.cat([feats[order], t_s[..., None]], -1)                     # [R, N, 11]
-    # normals are unoriented: each hit's normal turned to face the ray (the sign is a constant of the blend)
-    side = torch.where((f_s[..., 3:6].detach() * dirs[:, None, :]).sum(-1) > 0, -1.0, 1.0).to(f_s.dtype)
-    f_s = torch.cat([f_s[..., :3], side[..., None] * f_s[..., 3:6], f_s[..., 6:]], -1)
     one_minus = 1 - alpha_s
     trans = torch.cumprod(torch.cat([torch.ones_like(one_minus[:, :1]), one_minus[:, :-1]], 1), 1)
     blended = valid_s & (trans >= config.transmittance_threshold)

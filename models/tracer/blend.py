@@ -31,25 +31,13 @@ def blend_start() -> Blend:
 
 
 @wp.func
-def facing_sign(n: wp.vec3, d: wp.vec3) -> float:
-    """-1 where the Gaussian normal ``n`` points along the ray direction ``d``, else 1: normals are unoriented
-    (a surfel has two sides), every hit blends its normal turned to face the ray. Without it a Gaussian seen
-    from its other side cancels the normals in front of or behind it and the path stops there (a floater
-    trained from the mirror's side switched off the mirror behind it in a view from the room's other end)."""
-    if wp.dot(n, d) > 0.0:
-        return -1.0
-    return 1.0
-
-
-@wp.func
-def blend_slot(acc: Blend, g: GaussianData, rep: Replay, ray: int, slot: int, d: wp.vec3) -> Blend:
-    """Composite the hit in replay slot ``slot`` behind the blended ones; stores its incoming T for the backward.
-    ``d``: the ray direction (normals are blended facing it)."""
+def blend_slot(acc: Blend, g: GaussianData, rep: Replay, ray: int, slot: int) -> Blend:
+    """Composite the hit in replay slot ``slot`` behind the blended ones; stores its incoming T for the backward."""
     gid = rep.ids[ray, slot]
     a = rep.alpha[ray, slot]
     w = acc.trans * a
     acc.diffuse += w * g.diffuse[gid]
-    acc.normal += (w * facing_sign(g.normal[gid], d)) * g.normal[gid]
+    acc.normal += w * g.normal[gid]
     acc.f0 += w * g.f0[gid]
     acc.roughness += w * g.roughness[gid]
     acc.depth += w * rep.t[ray, slot]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import warp as wp
 
-from models.tracer.blend import facing_sign
 from models.tracer.hit import hit_grad_geometry
 from models.tracer.structs import GaussianData, GaussianGrads, RayGrads, RayOutputs, Replay, TraceParams
 
@@ -46,14 +45,13 @@ def backward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePa
         t = rep.t[ray, i]
         t_i = rep.trans[ray, i]
         w = t_i * a
-        side = facing_sign(g.normal[gid], d)  # the normal as blended (turned to face the ray): constant
-        gdotf = (wp.dot(gd, g.diffuse[gid]) + gz * t + side * wp.dot(gn, g.normal[gid])
+        gdotf = (wp.dot(gd, g.diffuse[gid]) + gz * t + wp.dot(gn, g.normal[gid])
                  + gr * g.roughness[gid] + wp.dot(gf, g.f0[gid]))
         inv_1ma = 1.0 / (1.0 - a)
         dl_dalpha = t_i * gdotf - (suffix + a_t * t_end) * inv_1ma
         suffix += w * gdotf
         wp.atomic_add(grads.diffuse, gid, w * gd)
-        wp.atomic_add(grads.normal, gid, (w * side) * gn)
+        wp.atomic_add(grads.normal, gid, w * gn)
         wp.atomic_add(grads.roughness, gid, w * gr)
         wp.atomic_add(grads.f0, gid, w * gf)
         rec = g.packed[gid]

@@ -300,7 +300,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                     n_acc = acc.blended + 1  # an accepted hit left unblended: the tail rule (see hit_count)
                 else:
                     a = rep.alpha[ray, base + j]
-                    acc = blend_slot(acc, g, rep, ray, base + j, d)
+                    acc = blend_slot(acc, g, rep, ray, base + j)
                     depth -= wp.log(1.0 - a)
         if done == 0:
             t_lo = d_t

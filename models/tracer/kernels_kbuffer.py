@@ -76,7 +76,7 @@ def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                 if acc.blended == j:
                     last_t = rep.t[ray, j]
                     last_id = rep.ids[ray, j]
-                    acc = blend_slot(acc, g, rep, ray, j, d)
+                    acc = blend_slot(acc, g, rep, ray, j)
         if m == 0 or acc.trans < prm.trans_threshold:
             done = 1
     outs.candidates[ray] = cand

@@ -192,7 +192,7 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                 if acc.trans < prm.trans_threshold:
                     done = 1
                 else:
-                    acc = blend_slot(acc, g, rep, ray, acc.blended, d)
+                    acc = blend_slot(acc, g, rep, ray, acc.blended)
             if acc.trans < prm.trans_threshold:
                 done = 1
     outs.candidates[ray] = cand

@@ -75,7 +75,7 @@ def forward_single(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trace
                 if acc.trans < prm.trans_threshold:
                     done = 1
                 else:
-                    acc = blend_slot(acc, g, rep, ray, j, d)
+                    acc = blend_slot(acc, g, rep, ray, j)
         taken = end
     write_outputs(ray, n, acc, outs)
     return 1

@@ -26,8 +26,7 @@ class TraceOutput:
 
     diffuse: torch.Tensor        # [R, 3] blended linear diffuse RGB
     depth: torch.Tensor          # [R]    expected ray parameter t (distance when dirs are unit)
-    normal: torch.Tensor         # [R, 3] blended normal, NOT normalised; each hit's normal turned to face the ray
-    #                              (normals are unoriented: a Gaussian seen from its other side agrees, not cancels)
+    normal: torch.Tensor         # [R, 3] blended normal, NOT normalised
     roughness: torch.Tensor      # [R]    blended perceptual roughness
     f0: torch.Tensor             # [R, 3] blended base reflectance
     transmittance: torch.Tensor  # [R]    T_end after the last blended hit (before the tail fill)
