@@ -15,8 +15,8 @@ from models.capture.camera import Camera
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.mirror_stereo import (MirrorView, complete_flat, fit_plane, mirror_stereo_gaussians,
-                                                 mirror_views, planar_components)
+from models.reconstruction.mirror_stereo import (MirrorView, complete_flat, depth_votes, fit_plane,
+                                                 mirror_stereo_gaussians, mirror_views, planar_components)
 
 PANEL_Z, PANEL_HALF = 2.0, 0.5
 BACKGROUND = np.array([0.3, 0.3, 0.3])
@@ -237,3 +237,27 @@ def test_complete_flat_matches_the_per_pixel_loop(seed):
         fast, slow = complete_flat(*args, **kw), _complete_flat_loop(*args, **kw)
         assert np.array_equal(fast, slow), (radius, np.nonzero(fast != slow))
         assert (slow >= 0).sum() > 5  # the case decides something
+
+
+def test_depth_votes_tell_agreeing_points_from_points_another_mirror_sees_through():
+    """A point on the panel agrees with another mirror's depths there; a point halfway up in the air (where a
+    wrong match would put it) is seen through by that mirror; one beyond the panel, hidden behind it, or one no
+    kept pixel of that mirror sees, casts no vote."""
+    views, _ = mirror_views(_rays(), None, _room())
+    other = views[4]  # the camera above the mirror's centre
+    path = other.distance + (PANEL_Z / other.dirs[..., 2])  # camera -> mirror -> the plane z = PANEL_Z
+    depth = np.where(other.open, path, np.nan)
+    depth[:, :SIZE // 2] = np.nan  # that mirror kept nothing on its left half
+    at = other.points[20, 30] + (PANEL_Z / other.dirs[20, 30, 2]) * other.dirs[20, 30]  # on the panel
+    pts = np.stack([at, 0.5 * at + 0.5 * other.points[20, 30], at + np.array([0, 0, 0.5]),
+                    np.array([-0.3, 0.0, PANEL_Z])])
+    agree, through = depth_votes(pts, other, depth, tol=0.03)
+    assert agree.tolist() == [True, False, False, False]
+    assert through.tolist() == [False, True, False, False]
+
+
+def test_stereo_matches_agree_across_mirrors(stereo):
+    """On the panel room the sweep's matches agree with the other mirrors' depths: the check drops few."""
+    fill, stats = stereo
+    assert stats["inconsistent"] < 0.05 * stats["kept"], stats
+    assert stats["added"] == stats["kept"] - stats["inconsistent"]

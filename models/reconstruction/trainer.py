@@ -388,7 +388,8 @@ class Trainer:
                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, "
-                              "%(completed)d of them flat ones completed from their matched neighbours)", True))
+                              "%(completed)d of them flat ones completed from their matched neighbours; %(inconsistent)d dropped: "
+                              "no other mirror's depth agrees, or more see through them)", True))
             box = self._captured_box(scene, [f[0] for f in fills])
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
             self._replace(extra=ff)
