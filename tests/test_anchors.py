@@ -130,3 +130,42 @@ def test_facing_surfels_turn_the_local_z_axis_onto_the_normal_and_keep_isotropic
     torch.testing.assert_close(turned.world_to_local().transpose(1, 2) @ turned.world_to_local(),
                                fill.world_to_local().transpose(1, 2) @ fill.world_to_local(), atol=1e-3, rtol=1e-5)
     assert all(torch.equal(getattr(turned, k), getattr(fill, k)) for k in ("means", "log_scales", "diffuse"))
+
+
+def test_fill_gaussians_keep_their_matte_material_and_checkpoints_keep_which_they_are():
+    """fill_matte: what a mirror fill placed keeps F0 and roughness (no buffer sees them; the reflections'
+    colour alone made them shiny in the air); the other Gaussians' material trains; off, the fill's trains too."""
+    from stages.benchmark.room_capture import room_capture
+
+    tracer = Tracer(TracerConfig(num_threads=2))
+    capture, init = room_capture(tracer, 2000, 2, 32, 24, seed=3)
+    changed = {}
+    for matte in (True, False):
+        config = ReconstructConfig(iterations=20, warmup=0, rays_per_step=256, far_field="off", prune_every=0,
+                                   fill_matte=matte)
+        trainer = Trainer(capture, init, config, tracer)
+        n = len(trainer.params["means"])
+        fill = _fill(300, seed=2, scale=0.02)
+        with torch.no_grad():  # among the room's Gaussians, where the views' buffers reach them
+            fill.means.copy_(init.means[torch.randperm(n, generator=torch.Generator().manual_seed(4))[:300]] + 0.01)
+        trainer._add_fill(fill, {}, "a test fill", anchored=True)
+        trainer._add_fill(_fill(50, seed=5), {}, "highlights")  # not a mirror fill: trains
+        assert trainer.reflected.tolist() == [False] * n + [True] * 300 + [False] * 50
+        before = {k: trainer.params[k].detach().clone() for k in ("f0", "roughness", "diffuse")}
+        for _ in range(5):
+            trainer.train_step()
+        changed[matte] = {k: (trainer.params[k].detach() != v).reshape(len(v), -1).any(1) for k, v in before.items()}
+        if matte:
+            resumed = Trainer(capture, init, config, tracer)
+            resumed.load_state_dict(trainer.state_dict())
+            assert torch.equal(resumed.reflected, trainer.reflected)
+            keep = torch.ones(n + 350, dtype=torch.bool)
+            keep[::2] = False
+            trainer._replace(keep=keep)
+            assert torch.equal(trainer.reflected, torch.tensor([False] * n + [True] * 300 + [False] * 50)[keep])
+    on, off = changed[True], changed[False]
+    for k in ("f0", "roughness"):
+        assert not on[k][n:n + 300].any() and on[k][:n].float().mean() > 0.1, k
+        assert off[k][n:n + 300].sum() >= 10, k
+        assert on[k][n + 300:].any(), k  # the highlights' too
+    assert on["diffuse"][n:n + 300].sum() >= 10  # the fill's colour still trains

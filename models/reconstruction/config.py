@@ -106,6 +106,9 @@ class ReconstructConfig:
                                  "and swell in the part of the room no camera sees); 0 = free, the default "
                                  "(zoo_mirror_metal at 3: linear final +5.7 dB, tonemapped -0.9; anchors.py)",
                                  minimum=0)
+    fill_matte: bool = setting(True, "mirror-stereo and reflection-fill Gaussians keep the matte material they "
+                               "were made with (no buffer sees it; trained by the reflections' colour alone they "
+                               "turned shiny in the air: zoo_mirror_only)")
     fill_spread: float = setting(10.0, "with fill_anchor: how far (in initial sizes) and by what factor those "
                                  "surfels may move and grow along the surface, to cover it", minimum=1)
     radiance_clamp: float = setting(0.0, "clamp target radiance (diffuse/specular) to this; 0 = off (real scenes: "

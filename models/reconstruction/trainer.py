@@ -102,6 +102,9 @@ class Trainer:
         self.prior = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self.prior[len(self.prior) - n_prior:] = True
         self._prior_rows: torch.Tensor | None = None  # rows of ``prior`` (made when first needed), see _freeze_priors
+        # Gaussians the mirror fills placed (seen only in reflections): no buffer sees their material
+        self.reflected = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
+        self._reflected_rows: torch.Tensor | None = None
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
         for d in self.decisions:
@@ -249,10 +252,13 @@ class Trainer:
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
-            self._prior_rows = None
+            self.reflected = self.reflected[keep.to(self.reflected.device)]
+            self._prior_rows = self._reflected_rows = None
         if extra is not None:
             self.prior = torch.cat([self.prior, torch.zeros(len(extra), dtype=torch.bool, device=self.prior.device)])
-            self._prior_rows = None
+            self.reflected = torch.cat([self.reflected, torch.full((len(extra),), anchored, dtype=torch.bool,
+                                                                   device=self.reflected.device)])
+            self._prior_rows = self._reflected_rows = None
         if extra is not None and anchored and self.config.fill_anchor > 0:
             extra = facing_surfels(extra)
             first = len(self.params["means"]) - (0 if keep is None else int((~keep).sum()))
@@ -553,6 +559,7 @@ class Trainer:
             "path_length": self.path_length,
             "anchors": self.anchors.state_dict(),
             "prior": self.prior.clone(),
+            "reflected": self.reflected.clone(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -566,7 +573,8 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         self.prior = state.get("prior", torch.zeros(len(self.params["means"]), dtype=torch.bool)).to(self.device)
-        self._prior_rows = None
+        self.reflected = state.get("reflected", torch.zeros_like(self.prior)).to(self.device)
+        self._prior_rows = self._reflected_rows = None
         self.anchors = Anchors(self.device, self.params["means"].dtype)
         if "anchors" in state:
             self.anchors.load_state_dict(state["anchors"])
@@ -575,16 +583,26 @@ class Trainer:
         """The prior's Gaussians (plane_fill.py) keep their place, size and orientation on the plane: their geometry
         gradients are zeroed (Adam's moments stay 0, so they never move). Reflections alone pin down no depth:
         trained free they swelled into blobs (zoo_corridor: a floor Gaussian grew 1 m tall). Their colour,
-        material and opacity train."""
+        material and opacity train.
+
+        With ``fill_matte``, the mirror fills' Gaussians (``reflected``) keep the matte material they were made
+        with: the buffers see only what the cameras face, so nothing but the reflections' colour would set their
+        F0 and roughness, and that fits a shiny Gaussian in the air as well as a matte one on the wall
+        (zoo_mirror_only: mirror-stereo Gaussians in front of the urn became F0 0.45, roughness 0.26, 0.8 m
+        across, and the test views looking at the urn saw reflections in the air)."""
         if self._prior_rows is None:  # reset wherever ``prior`` changes (_replace, load_state_dict)
             self._prior_rows = torch.nonzero(self.prior).reshape(-1)
-        rows = self._prior_rows
-        if len(rows) == 0:
-            return
-        for name in ("means", "quats", "log_scales"):
-            grad = self.params[name].grad
-            if grad is not None:
-                grad.index_fill_(0, rows, 0.0)
+            self._reflected_rows = torch.nonzero(self.reflected).reshape(-1)
+        frozen = [(self._prior_rows, ("means", "quats", "log_scales"))]
+        if self.config.fill_matte:
+            frozen.append((self._reflected_rows, ("f0", "roughness")))
+        for rows, names in frozen:
+            if len(rows) == 0:
+                continue
+            for name in names:
+                grad = self.params[name].grad
+                if grad is not None:
+                    grad.index_fill_(0, rows, 0.0)
 
     def _skip_non_finite(self) -> None:
         """Flag, on the device (no read-back), the parameters whose gradient holds NaN / Inf, and make this step's
