@@ -247,7 +247,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     (points [M, 3], colours [M, 3], virtual distances [M], reflected directions [M, 3]), how many otherwise
     clear pixels were dropped because their best depth lies on the edge of the swept range, and how many of
     the kept ones are flat pixels completed from their decided neighbours (``complete_flat`` within
-    ``complete_radius`` pixels; 0 turns it off)."""
+    ``complete_radius`` pixels; 0 turns it off), and the kept pixels' flat indices into the reference image."""
     h, w = ref.open.shape
     pix = np.nonzero(ref.open.reshape(-1))[0]
     x = ref.points.reshape(-1, 3)[pix]
@@ -367,7 +367,6 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
         dm[px] = d
         depth.append(dm.reshape(ref.open.shape))
     stats["kept"] = int(sum(len(p) for p in pos))
-    stats["inconsistent"] = 0
     if min_agree > 0:  # the mirrors' depths must agree with each other, and none may see through the point
         for i in range(len(usable)):
             agree, through = np.zeros(len(pos[i]), np.int64), np.zeros(len(pos[i]), np.int64)
