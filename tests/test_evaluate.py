@@ -36,6 +36,11 @@ def test_regions_score_only_their_pixels(tmp_path):
     assert m["quadrant_pixels"] == inside.sum() > 0
     # only the wrong pixels, error 0.1, at the view's ground-truth peak (no clamp)
     assert abs(m["quadrant_psnr_diffuse"] - (20.0 + 20 * np.log10(m["peak"]))) < 1e-3
+    # at peak 1 on [0, 1]-clamped values, whatever else the view shows: error 0.1 where the truth is below 0.9
+    truth = test.buffers["diffuse"]
+    expected = 10 * np.log10(1 / np.mean((np.clip(diffuse, 0, 1) - np.clip(truth, 0, 1))[inside] ** 2))
+    assert m["quadrant_psnr_diffuse_clamped"] == pytest.approx(expected, abs=1e-3) and expected >= 20.0 - 1e-6
+    assert 20.0 < m["quadrant_psnr_diffuse_tonemapped"] < 150 and m["quadrant_psnr_specular_tonemapped"] > 150
     assert m["peak"] == pytest.approx(float((test.buffers["diffuse"] + test.buffers["specular"]).max()))
     assert m["peak_diffuse"] == test.buffers["diffuse"].max()  # each layer's own maximum, recorded only
     assert m["psnr_diffuse"] > m["quadrant_psnr_diffuse"] + 1  # the whole image dilutes the error

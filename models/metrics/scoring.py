@@ -47,7 +47,12 @@ DEFINITIONS = {
     "ssim_<layer>_srgb": "SSIM of the same sRGB images, L = 1 (ssim_<layer>_tonemapped before)",
     "lpips_<layer>": "LPIPS v0.1, AlexNet (Zhang et al. 2018), of the clamp + sRGB images (as ssim_<layer>_srgb) "
                      "mapped to [-1, 1]; lower is better; only with evaluate.lpips (see 'lpips')",
-    "<region>_psnr_<layer>": "as psnr_<layer> (the view's peak) on the region's pixels",
+    "<region>_psnr_<layer>": "as psnr_<layer> (the view's peak) on the region's pixels: it moves with whatever "
+                             "else the view shows (a lamp in view raises the peak and the score)",
+    "<region>_psnr_<layer>_clamped": "as psnr_<layer>_clamped (peak 1) on the region's pixels: the same scale in "
+                                     "every view (the region scores before HDR-safe scoring were these)",
+    "<region>_psnr_<layer>_tonemapped": "as psnr_<layer>_tonemapped (mu-law at the view's peak) on the region's "
+                                        "pixels",
     "ssim": SSIM_DEFINITION,
     "saturated": f"views / layers where > {hdr.SATURATED_FRACTION:.0%} of ground-truth pixels exceed 1 (the clamped "
                  f"scores ignore errors there) or a PSNR is > {hdr.SATURATED_DB:.0f} dB or not finite",
@@ -105,8 +110,9 @@ LPIPS_OFF = ("not computed: LPIPS needs local weight files (nothing is downloade
 def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = None,
                      lpips: LpipsWeights | None = None) -> dict:
     """Per-view and mean metrics (module docstring); ``regions``: name -> {min: [x, y, z], max: [x, y, z]} world
-    boxes, each scored (PSNR per layer, linear, the view's peak) on the pixels whose ground-truth surface is
-    inside it. ``saturated``: [{view, layer, reasons}] (empty when every score measures something). ``lpips``:
+    boxes, each scored (PSNR per layer: linear at the view's peak, clamped at peak 1, mu-law) on the pixels whose
+    ground-truth surface is inside it. ``saturated``: [{view, layer, reasons}] (empty when every score measures
+    something). ``lpips``:
     weights (``models.metrics.lpips.load_lpips``) to add ``lpips_<layer>`` on the clamped sRGB images."""
     per_view, saturated = {}, []
     for view in capture.split("test"):
@@ -136,6 +142,9 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
             for layer in SCORED:
                 if m.any():
                     row[f"{name}_psnr_{layer}"] = psnr(pred[layer], gt[layer], m, peak=row["peak"])
+                    row[f"{name}_psnr_{layer}_clamped"] = psnr(np.clip(pred[layer], 0, 1), np.clip(gt[layer], 0, 1), m)
+                    row[f"{name}_psnr_{layer}_tonemapped"] = psnr(hdr.mu_law(pred[layer], row["peak"]),
+                                                                  hdr.mu_law(gt[layer], row["peak"]), m)
         per_view[view.name] = row
     keys = dict.fromkeys(k for r in per_view.values() for k in r)
     mean = {k: float(np.mean([r[k] for r in per_view.values() if k in r])) for k in keys}

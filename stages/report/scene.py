@@ -59,9 +59,12 @@ def metrics_tables(metrics: dict) -> str:
             + "</ul>")
     regions = sorted({k.split("_psnr_")[0] for k in mean if "_psnr_" in k})
     if regions:
+        kinds = [("tonemapped", "_tonemapped"), ("linear, the view's peak", ""), ("clamped, peak 1", "_clamped")]
         out += "<h3>Regions</h3>" + table(
-            ["region", "pixels (mean per view)", *[f"PSNR {layer}" for layer in COLOUR_LAYERS]],
-            [[r, fmt(mean.get(f"{r}_pixels"), 0), *[mean.get(f"{r}_psnr_{layer}") for layer in COLOUR_LAYERS]]
+            ["region", "pixels (mean per view)",
+             *[f"PSNR {layer} {kind}" for kind, _ in kinds for layer in COLOUR_LAYERS]],
+            [[r, fmt(mean.get(f"{r}_pixels"), 0),
+              *[mean.get(f"{r}_psnr_{layer}{suffix}") for _, suffix in kinds for layer in COLOUR_LAYERS]]
              for r in regions])
     views = metrics.get("views", {})
     if views:
