@@ -467,9 +467,10 @@ class Trainer:
         n = torch.where(((n * d).sum(-1) > 0)[:, None], -n, n)  # the side the camera saw
         g = self.gaussians()
         self.backend.update(g)
+        behind: dict = {}
         carried = carried_throughput(x.to(self.device), n.to(self.device), self.backend.trace, g,
                                      self.config.training_path(self.scene_size), limit,
-                                     torch.Generator().manual_seed(cfg.seed + 7919 + self.step))
+                                     torch.Generator().manual_seed(cfg.seed + 7919 + self.step), behind)
         self.path_length = max(self.path_length, needed_length(carried, base, limit, cfg.path_tail_throughput,
                                                                cfg.path_tail_rays))
 
@@ -481,7 +482,9 @@ class Trainer:
         message = (f"path length {self.path_length} (max_path_length {base}, limit {limit}): of {len(n)} "
                    f"reflections leaving mirror-like training pixels in random directions, {going(base):.1%} "
                    f"still carry more than {cfg.path_tail_throughput:g} of their light after {base} segments, "
-                   f"{going(self.path_length):.1%} after {self.path_length} (allowed: {cfg.path_tail_rays:.0%})")
+                   f"{going(self.path_length):.1%} after {self.path_length} (allowed: {cfg.path_tail_rays:.0%}; "
+                   f"{behind.get('back', 0)} of {behind.get('rays', 0)} segments met a surface from behind, the "
+                   "surface they left, and went on through it)")
         if going(self.path_length) > cfg.path_tail_rays:
             message += "; the limit cuts them short (raise reconstruct.max_path_length_limit)"
         log.info("step %d: %s", self.step, message)
