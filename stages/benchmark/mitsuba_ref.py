@@ -33,7 +33,7 @@ class MitsubaEllipsoids:
     def __init__(self, gaussians: Gaussians, config: TracerConfig, device: str = "cpu"):
         mi.set_variant(variant(device))
         self.config = config
-        g = gaussians.to(dtype=torch.float64)
+        g = gaussians.to(device="cpu", dtype=torch.float64)
         opacity = g.opacities()
         s = cutoff_radius(opacity, config.kernel_p, config.alpha_min)
         keep = s > 0  # masked Gaussians (opacity <= alpha_min) have no shell
@@ -49,8 +49,8 @@ class MitsubaEllipsoids:
 
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[np.ndarray, np.ndarray, float, float]:
         """(diffuse [R, 3], transmittance [R], wall s, CPU s) of the rays, timed from the query to the result."""
-        o = origins.detach().double().numpy().astype(np.float32)
-        d = dirs.detach().double().numpy().astype(np.float32)
+        o = origins.detach().cpu().double().numpy().astype(np.float32)
+        d = dirs.detach().cpu().double().numpy().astype(np.float32)
         ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i]) for i in range(3))),
                        mi.Vector3f(*(mi.Float(d[:, i]) for i in range(3))))
         dr.eval(ray)

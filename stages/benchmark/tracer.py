@@ -77,8 +77,9 @@ def _best(fn, repeats: int) -> tuple[float, float]:
 
 
 def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
-    gs = benchmark_scene(n, cfg.seed).requires_grad_()
-    origins, dirs = pinhole_rays(res)
+    tdev = _torch_device(cfg.device)
+    gs = benchmark_scene(n, cfg.seed).to(device=tdev).requires_grad_()
+    origins, dirs = (t.to(tdev) for t in pinhole_rays(res))
     threads = max(cfg.threads)
     base = TracerConfig(num_threads=threads)
     tracer = Tracer(base, cfg.device)
@@ -94,6 +95,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     targets = {"diffuse": torch.full((res * res, 3), 0.5), "depth": torch.ones(res * res),
                "normal": torch.zeros(res * res, 3), "roughness": torch.full((res * res,), 0.3),
                "f0": torch.full((res * res, 3), 0.04)}
+    targets = {k: v.to(tdev) for k, v in targets.items()}
     weights = {"diffuse": 5.0, "depth": 2.5, "normal": 2.5, "roughness": 1.0, "f0": 1.0}
 
     def fused():
@@ -170,7 +172,9 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     """One scene type: our default (interval) traversal, the single traversal it replaced and Mitsuba 3 on the
     same Gaussians and rays, timed interleaved (best of ``repeats``); counts per ray; fused / forward."""
     gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
-    gs = gs.requires_grad_()
+    mitsuba_input = gs
+    tdev = _torch_device(cfg.device)
+    gs, origins, dirs = gs.to(device=tdev).requires_grad_(), origins.to(tdev), dirs.to(tdev)
     threads = max(cfg.threads)
     ours = Tracer(TracerConfig(num_threads=threads), cfg.device)
     single = Tracer(TracerConfig(num_threads=threads, traversal="single"), cfg.device)
@@ -185,7 +189,7 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     if cfg.mitsuba:
         from stages.benchmark.mitsuba_ref import MitsubaEllipsoids
 
-        mitsuba = MitsubaEllipsoids(gs, TracerConfig(), cfg.device)
+        mitsuba = MitsubaEllipsoids(mitsuba_input, TracerConfig(), cfg.device)
         timed["mitsuba"] = lambda: mitsuba.render(origins, dirs)
     results = {k: fn() for k, fn in timed.items()}  # warm-up: kernel compilation, BVH / JIT
     best = {k: (math.inf, math.inf) for k in timed}
@@ -197,6 +201,7 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
             best[k] = min(best[k], (w, c))
     out, ref = results["ours"], results["single"]
     row["forward_ms"], row["forward_cpu_ms"] = best["ours"]
+    row["mrays_per_s"] = len(dirs) / row["forward_ms"] / 1e3
     row["single_forward_ms"], row["single_forward_cpu_ms"] = best["single"]
     row["speedup_over_single_cpu"] = row["single_forward_cpu_ms"] / row["forward_cpu_ms"]
     row["candidates_per_ray"] = float(out.candidates.float().mean())
@@ -210,13 +215,16 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     if cfg.mitsuba:
         rgb, _, _, _ = results["mitsuba"]
         row["mitsuba_ms"], row["mitsuba_cpu_ms"] = best["mitsuba"]
+        row["mitsuba_mrays_per_s"] = len(dirs) / row["mitsuba_ms"] / 1e3
         row["ours_over_mitsuba"] = row["forward_ms"] / row["mitsuba_ms"]
         row["ours_over_mitsuba_cpu"] = row["forward_cpu_ms"] / row["mitsuba_cpu_ms"]
-        row["mitsuba_mean_abs_diff"] = float((torch.from_numpy(rgb) - out.diffuse).abs().mean())
+        row["mitsuba_mean_abs_diff"] = float((torch.from_numpy(rgb) - out.diffuse.cpu()).abs().mean())
     def fused():
         for v in gs.params().values():
             v.grad = None
-        return ours.trace_fused(origins, dirs, gs, {"diffuse": torch.full((len(dirs), 3), 0.5)}, {"diffuse": 1.0})
+        return ours.trace_fused(origins, dirs, gs, {"diffuse": target}, {"diffuse": 1.0})
+
+    target = torch.full((len(dirs), 3), 0.5, device=tdev)
 
     row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats)
     row["fused_over_forward"] = row["forward_backward_ms"] / row["forward_ms"]
@@ -224,6 +232,11 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     for tr in (ours, single):
         tr.close()
     return row
+
+
+def _torch_device(device: str) -> torch.device:
+    """Where the benchmark keeps scene, rays and targets: on the tracer's GPU (no copies per call), else the CPU."""
+    return torch.device(device) if str(device).startswith("cuda") and torch.cuda.is_available() else torch.device("cpu")
 
 
 def _met(value: float, op: str, threshold: float) -> bool:
@@ -287,10 +300,12 @@ COLUMNS = [
 
 SCENE_COLUMNS = [
     ("scene", "scene", "{}"), ("N", "n_gaussians", "{:d}"), ("rays", "rays", "{:d}"),
-    ("fwd ms", "forward_ms", "{:.0f}"), ("fwd cpu ms", "forward_cpu_ms", "{:.0f}"),
+    ("fwd ms", "forward_ms", "{:.1f}"), ("fwd cpu ms", "forward_cpu_ms", "{:.0f}"),
     ("single ms", "single_forward_ms", "{:.0f}"), ("single cpu", "single_forward_cpu_ms", "{:.0f}"),
     ("x single cpu", "speedup_over_single_cpu", "{:.2f}"),
-    ("mitsuba ms", "mitsuba_ms", "{:.0f}"), ("mitsuba cpu", "mitsuba_cpu_ms", "{:.0f}"),
+    ("Mrays/s", "mrays_per_s", "{:.2f}"),
+    ("mitsuba ms", "mitsuba_ms", "{:.1f}"), ("mitsuba cpu", "mitsuba_cpu_ms", "{:.0f}"),
+    ("mi Mrays/s", "mitsuba_mrays_per_s", "{:.2f}"),
     ("ours/mi", "ours_over_mitsuba", "{:.2f}"), ("ours/mi cpu", "ours_over_mitsuba_cpu", "{:.2f}"),
     ("cand/blended", "candidates_per_blended", "{:.2f}"), ("single c/b", "single_candidates_per_blended", "{:.1f}"),
     ("blended", "blended_per_ray", "{:.1f}"), ("accepted", "accepted_per_ray", "{:.1f}"),

@@ -109,6 +109,7 @@ def bench_row(capture, init, rays_per_step: int, device: str, cfg: TrainStepBenc
         sections["total"] = (time.perf_counter() - start) * 1e3
         profiled.append(sections)
     trainer.timer = tracer.timer = NO_TIMER
+    busy = gpu_busy(trainer.train_step, sync) if tracer.device.startswith("cuda") else None
     tracer.close()
     median = lambda key: statistics.median(p.get(key, 0.0) for p in profiled)  # noqa: E731
     cam = capture.views[0].camera
@@ -118,10 +119,42 @@ def bench_row(capture, init, rays_per_step: int, device: str, cfg: TrainStepBenc
            "step_ms_min": min(plain), "step_cpu_ms": statistics.median(cpu), "profiled_step_ms": median("total")}
     for key in WORK:
         row[f"{key}_ms"] = median(key)
+    row["gpu_busy"] = busy
     row["tracer_host_ms"] = median("tracer_host")
     row["host_ms"] = statistics.median(p["total"] - sum(p.get(k, 0.0) for k in WORK) for p in profiled)
     row["other_host_ms"] = row["host_ms"] - row["tracer_host_ms"]
     return row
+
+
+def gpu_busy(step, sync, seconds: float = 3.0, interval: float = 0.05) -> float | None:
+    """Fraction of time the GPU runs a kernel while ``step`` repeats for ``seconds``: NVML's utilisation (what
+    nvidia-smi shows), sampled every ``interval`` s in a thread, median of the samples; None without NVML."""
+    import threading
+
+    try:
+        torch.cuda.utilization()
+    except Exception:  # noqa: BLE001 - NVML (pynvml) missing or not permitted: no figure, not an error
+        return None
+    samples, stop = [], threading.Event()
+
+    def sample():
+        while not stop.wait(interval):
+            samples.append(torch.cuda.utilization())
+
+    thread = threading.Thread(target=sample, daemon=True)
+    step()
+    sync()
+    start = time.perf_counter()
+    thread.start()
+    try:
+        while time.perf_counter() - start < seconds:
+            step()
+        sync()
+    finally:
+        stop.set()
+        thread.join()
+    # the first samples may still cover the time before the loop (NVML averages over its own sample period)
+    return statistics.median(samples[len(samples) // 4:]) / 100.0 if samples else None
 
 
 def run_train_step_benchmark(cfg: TrainStepBenchmarkConfig, progress=print) -> dict:
@@ -182,7 +215,7 @@ COLUMNS = [
     ("trace bwd", "tracer_backward_ms", "{:.1f}"), ("bvh", "bvh_update_ms", "{:.1f}"),
     ("paths", "path_sampling_ms", "{:.1f}"), ("losses", "losses_ms", "{:.1f}"), ("autograd", "autograd_ms", "{:.1f}"),
     ("adam", "optimizer_ms", "{:.1f}"), ("host", "host_ms", "{:.1f}"), ("(tracer host", "tracer_host_ms", "{:.1f}"),
-    ("other host)", "other_host_ms", "{:.1f}"),
+    ("other host)", "other_host_ms", "{:.1f}"), ("GPU busy", "gpu_busy", "{:.0%}"),
 ]
 
 
