@@ -264,9 +264,9 @@ def test_training_batch_is_also_scored_tonemapped_at_the_training_peak():
     seen = {}
     score = trainer._loss_terms
 
-    def spy(batch, out, reflections):
+    def spy(batch, out, reflections, flags=None):
         seen.update(batch=batch, out=out)
-        return score(batch, out, reflections)
+        return score(batch, out, reflections, flags)
 
     trainer._loss_terms = spy
     _, metrics = trainer.losses(trainer.sample_batch(), True)
@@ -278,6 +278,30 @@ def test_training_batch_is_also_scored_tonemapped_at_the_training_peak():
         expect = psnr(hdr.mu_law(pred, trainer.peak), hdr.mu_law(target, trainer.peak))
         assert metrics[f"psnr_{layer}_tonemapped"] == pytest.approx(expect, abs=1e-6), layer
         assert metrics[f"psnr_{layer}"] == pytest.approx(psnr(pred, target), abs=1e-6), layer
+
+
+def test_deferred_tracer_checks_train_exactly_as_checked_traces():
+    """On a GPU the trainer settles the tracer's per-trace read-backs (replay overflow, zero directions) with its one
+    metrics read-back (``defer_checks``); a step in which a ray outgrew the replay buffer is redone with the same
+    random numbers. Forced here on the CPU with a 2-slot buffer (rays overflow in the first steps, with reflections):
+    the same metrics and parameters, bit for bit, as checking at every trace."""
+    capture, init = _room()
+    runs = []
+    for defer in (False, True):
+        backend = Tracer(TracerConfig(num_threads=2, replay_capacity=2))
+        trainer = Trainer(capture, init, _room_config(), backend)
+        assert trainer.defer_checks is False  # a CPU trainer checks at every trace (no sync to save)
+        trainer.defer_checks = defer
+        trainer.train_step()  # (decides the path length: traces that grow the capacity, as the constructor's)
+        backend.capacity = 2
+        metrics = [trainer.train_step() for _ in range(3)]
+        runs.append((metrics, {k: v.detach().clone() for k, v in trainer.params.items()}, backend.capacity))
+    (checked, p_checked, cap_checked), (deferred, p_deferred, cap_deferred) = runs
+    assert cap_checked > 2 and cap_deferred > 2
+    for a, b in zip(checked, deferred):
+        assert {k: v for k, v in a.items() if "time" not in k} == {k: v for k, v in b.items() if "time" not in k}
+    for k in p_checked:
+        assert torch.equal(p_checked[k], p_deferred[k]), k
 
 
 def test_non_finite_gradients_skip_the_update_and_stop_training(tmp_path):

@@ -409,6 +409,50 @@ def test_empty_scene_and_no_rays(device):
     assert out.diffuse.shape == (0, 3)
 
 
+@pytest.mark.parametrize("traversal", ["interval", "single"])
+def test_deferred_checks_collect_overflow_and_zero_directions(traversal):
+    """Inside deferred_checks() a trace reads nothing back: rays that outgrow the replay buffer and zero-length
+    directions become device flags, settled by the caller (a grown capacity and a redo; a ValueError). The redo
+    gives the checked trace's outputs and gradients."""
+    seed = fresh_seed()
+    gs, origins, dirs = scene_and_rays(seed, n=400, res=12, scale=0.3)
+    gs = gs.requires_grad_()
+    checked = Tracer(TracerConfig(traversal=traversal, replay_capacity=2))
+    ref = checked.trace(origins, dirs, gs)
+    assert ref.overflow_rays > 0, "the scene must overflow 2 slots"
+    (ref.diffuse.sum() + ref.depth.sum()).backward()
+    ref_grads = [v.grad.clone() for v in gs.params().values()]
+
+    tracer = Tracer(TracerConfig(traversal=traversal, replay_capacity=2))
+    with tracer.deferred_checks() as checks:
+        tracer.trace(origins, dirs, gs)
+        needed, zero_dirs = checks.flags().tolist()
+    assert needed > 2 and zero_dirs == 0 and tracer.capacity == 2
+    assert checks.settle(needed, zero_dirs) and tracer.capacity >= needed
+    while True:  # the caller's redo (here deferred again until nothing overflows)
+        with tracer.deferred_checks() as checks:
+            out = tracer.trace(origins, dirs, gs)
+        if not checks.settle(*checks.flags().tolist()):
+            break
+    for v in gs.params().values():
+        v.grad = None
+    (out.diffuse.sum() + out.depth.sum()).backward()
+    for layer in ("diffuse", "depth", "transmittance"):
+        assert torch.equal(getattr(out, layer), getattr(ref, layer)), (seed, layer)
+    for g, r in zip([v.grad for v in gs.params().values()], ref_grads):
+        torch.testing.assert_close(g, r, rtol=1e-5, atol=1e-7)
+
+    bad = dirs.clone()
+    bad[3] = 0.0
+    with tracer.deferred_checks() as checks:
+        tracer.trace(origins, bad, gs)  # runs (the traversal ends on a zero direction); the flag says why it is wrong
+    with pytest.raises(ValueError, match="zero-length"):
+        checks.settle(*checks.flags().tolist())
+    with pytest.raises(RuntimeError, match="already active"):
+        with tracer.deferred_checks(), tracer.deferred_checks():
+            pass
+
+
 def test_user_mistakes_raise_named_errors():
     tracer = Tracer()
     gs, origins, dirs = scene_and_rays(0, n=10, res=2)

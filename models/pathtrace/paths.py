@@ -125,7 +125,9 @@ def trace_paths(
         x = o + d * (seg.depth.detach().reshape(-1, 1) / opacity)
         # drawn where the generator lives (a CPU generator gives the same paths on every device)
         u = torch.rand((len(index), 2), generator=generator, dtype=o.dtype,
-                       device=o.device if generator is None else generator.device).to(o.device)
+                       device=o.device if generator is None else generator.device)
+        if u.device != o.device:  # CPU draws for GPU rays: copied from pinned memory, the host does not wait for it
+            u = u.pin_memory().to(o.device, non_blocking=True)
         f90 = fresnel_f90(f0, config.fresnel)
         wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler, f90=f90)
         # (no branch on "any mirror": selecting costs less than a device read-back)

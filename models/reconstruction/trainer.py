@@ -92,6 +92,10 @@ class Trainer:
         # parameters, rays and targets live where the backend traces (a CUDA tracer: on the GPU)
         self.device = getattr(backend, "torch_device", None) or torch.device("cpu")
         self.batches = RayBatcher(self.rays, self.device)
+        # on a GPU the tracer's per-trace read-backs (replay overflow, zero directions) are settled with the step's
+        # one metrics read-back instead (see models/tracer/checks.py): the host queues a step's work while the
+        # trace kernels run. A backend without deferred_checks, or False here, checks at every trace.
+        self.defer_checks = self.device.type == "cuda" and hasattr(backend, "deferred_checks")
         self.params = {k: v.detach().to(self.device).clone().requires_grad_(True) for k, v in init.params().items()}
         self.finite_at = 0  # last step whose parameters were checked finite
         self._nonfinite = torch.zeros(len(self.params), device=self.device)  # per parameter: steps skipped
@@ -305,12 +309,25 @@ class Trainer:
         self.backend.update(g)
         path_cfg = (self.path_config(training=True) if reflections
                     else PathConfig(max_path_length=1, sampler=self.config.sampler))
+        if self.defer_checks:
+            rng = self.generator.get_state()
+            with self.backend.deferred_checks() as checks:
+                with self.timer.section("path_sampling"):
+                    out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
+                with self.timer.section("losses"):
+                    total, metrics, flags = self._loss_terms(batch, out, reflections, checks.flags())
+            if not checks.settle(*flags):
+                return total, metrics
+            # a ray outgrew its replay buffer (capacity grown): the step again, checked, with the same random numbers
+            self.generator.set_state(rng)
         with self.timer.section("path_sampling"):
             out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
         with self.timer.section("losses"):
-            return self._loss_terms(batch, out, reflections)
+            return self._loss_terms(batch, out, reflections)[:2]
 
-    def _loss_terms(self, batch: RaySet, out, reflections: bool) -> tuple[torch.Tensor, dict]:
+    def _loss_terms(self, batch: RaySet, out, reflections: bool,
+                    flags: torch.Tensor | None = None) -> tuple[torch.Tensor, dict, list[float]]:
+        """(total loss, metrics, the host values of ``flags``: extra device values read back with the metrics)."""
         terms = {}
         m = batch.mask
         for layer, w in self.weights.items():
@@ -343,13 +360,17 @@ class Trainer:
             stopped = torch.stack(out.stopped).sum(0)
             names += ["paths_stopped", "stopped_weight"]
             values += [stopped[0], stopped[1] / stopped[2].clamp_min(1e-12)]
-        host = dict(zip(names, torch.stack([v.detach().double() for v in values]).tolist()))  # one read-back
+        stacked = torch.stack([v.detach().double() for v in values])
+        if flags is not None:
+            stacked = torch.cat([stacked, flags.double()])
+        read = stacked.tolist()  # the step's one read-back
+        host = dict(zip(names, read))
         metrics = {k: (round(v, 6) if k == "stopped_weight" else v) for k, v in host.items()
                    if not k.startswith("mse_")}
         for k in scored:  # psnr_<layer>: linear at peak 1 (as in logs before); _tonemapped: mu-law at self.peak
             metrics[f"psnr_{k}"] = mse_to_psnr(host[f"mse_{k}"])
             metrics[f"psnr_{k}_tonemapped"] = mse_to_psnr(host[f"mse_{k}_tonemapped"])
-        return total, metrics
+        return total, metrics, read[len(names):]
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False) -> None:
         """Append a fill's Gaussians (if any; ``anchored``: see anchors.py), log ``message % stats`` and keep it

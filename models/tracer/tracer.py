@@ -10,6 +10,7 @@ Rays may start anywhere (camera or reflection vertices); dirs need not be unit l
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -23,6 +24,7 @@ from models.profiling import NO_TIMER
 from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
 from models.tracer.chain import chain_kernel
+from models.tracer.checks import ZERO_DIRS_MESSAGE, DeferredChecks
 from models.tracer.config import TRAVERSALS, TracerConfig
 from models.tracer.interop import is_alias, to_torch, to_warp, torch_device_for
 from models.tracer.launch import (
@@ -84,6 +86,7 @@ class Tracer:
         self._aliases: dict[tuple, wp.array] = {}  # Warp views of the parameters of the last update()
         self._loaded = False
         self.last_overflow_rays = 0
+        self._checks: DeferredChecks | None = None  # inside deferred_checks(): the traces' flags, not read back
         self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles
 
     @property
@@ -171,6 +174,20 @@ class Tracer:
         if old is None or len(old) != len(key) or any(a[0] is not b[0] or a[1] != b[1] for a, b in zip(old, key)):
             self.update(gaussians)
 
+    @contextlib.contextmanager
+    def deferred_checks(self):
+        """Traces inside do not read back replay overflow or zero-length directions (a host-device sync each, on
+        a GPU): they collect device flags in the yielded ``DeferredChecks`` (see models/tracer/checks.py)."""
+        if self._checks is not None:
+            raise RuntimeError("deferred_checks() is already active on this tracer")
+        checks = DeferredChecks(self.torch_device)
+        checks.grow = lambda most: self._grow(most, None)
+        self._checks = checks
+        try:
+            yield checks
+        finally:
+            self._checks = None
+
     # ------------------------------------------------------------------ entry points
     def trace(self, origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussians) -> TraceOutput:
         """Trace R rays. origins, dirs: [R, 3]. Differentiable wrt the Gaussian parameters
@@ -252,8 +269,11 @@ class Tracer:
                 raise ValueError(f"{name} must have shape [R, 3], got {tuple(t.shape)}")
         if origins.shape != dirs.shape:
             raise ValueError(f"origins {tuple(origins.shape)} and dirs {tuple(dirs.shape)} differ in shape")
-        if dirs.shape[0] and bool((dirs.detach().norm(dim=1) == 0).any()):
-            raise ValueError("dirs contains zero-length directions")
+        if self._checks is not None:  # no read-back now: counted on the device, settled by the caller
+            if dirs.shape[0]:
+                self._checks.zero_dirs.append((dirs.detach().norm(dim=1) == 0).sum())
+        elif dirs.shape[0] and bool((dirs.detach().norm(dim=1) == 0).any()):
+            raise ValueError(ZERO_DIRS_MESSAGE)
         return origins.detach(), dirs.detach()
 
     def _params(self, gid: int) -> TraceParams:
@@ -344,22 +364,29 @@ class Tracer:
             with self.timer.section("tracer_forward"):
                 run_chunks(self._pool, jobs)
             needed = to_torch(outs["needed"], torch_device_for(self.device) or torch.device("cpu"))
+            if self._checks is not None:  # settled by the caller, after its own read-back
+                self._checks.needed.append(needed.max())
+                break
             n_over, most = (int(v) for v in torch.stack([(needed > 0).sum(), needed.max().long()]).tolist())
             if n_over == 0:
                 break
             self.last_overflow_rays += n_over
-            ceiling = self.config.max_replay_capacity
-            if ceiling is not None and most > ceiling:
-                raise RuntimeError(
-                    f"replay buffer overflow: a ray needs {most} slots > max_replay_capacity "
-                    f"{ceiling}; raise TracerConfig.max_replay_capacity (or set it to null: no ceiling)")
-            grown = max(2 * self.capacity, most) if ceiling is None else min(ceiling, max(2 * self.capacity, most))
-            log.info("replay buffer overflow on %d rays (needed %d > %d slots): re-running with %d",
-                     n_over, most, self.capacity, grown)
-            self.capacity = grown
+            self._grow(most, n_over)
         if grads is not None:
             grads = sum_grads(grads)
         return outs, rep, grads
+
+    def _grow(self, most: int, n_over: int | None) -> None:
+        """A ray needed ``most`` replay slots: at least double the capacity (within max_replay_capacity)."""
+        ceiling = self.config.max_replay_capacity
+        if ceiling is not None and most > ceiling:
+            raise RuntimeError(
+                f"replay buffer overflow: a ray needs {most} slots > max_replay_capacity "
+                f"{ceiling}; raise TracerConfig.max_replay_capacity (or set it to null: no ceiling)")
+        grown = max(2 * self.capacity, most) if ceiling is None else min(ceiling, max(2 * self.capacity, most))
+        log.info("replay buffer overflow on %s rays (needed %d > %d slots): re-running with %d",
+                 "some" if n_over is None else n_over, most, self.capacity, grown)
+        self.capacity = grown
 
     def _forward(self, origins, dirs, inputs):
         n_rays = origins.shape[0]

@@ -146,6 +146,9 @@ def train_step_main(argv) -> int:
     p.add_argument("--steps", type=int, help="timed steps per row (default 5)")
     p.add_argument("--threads", type=int, help="tracer CPU threads (default 2)")
     p.add_argument("--seed", type=int)
+    p.add_argument("--sync-checks", action="store_true",
+                   help="read the tracer's checks back at every trace, as before deferred checks (the A/B of the "
+                   "GPU's host syncs; the CPU always does)")
     p.add_argument("--out", type=Path, help="write the JSON result here")
     p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test, not a measurement)")
     a = p.parse_args(argv)
@@ -158,6 +161,7 @@ def train_step_main(argv) -> int:
             setattr(cfg, name, getattr(a, arg))
     if a.device:
         cfg.devices = [d for d in a.device.split(",") if d]
+    cfg.sync_checks = a.sync_checks
     try:
         cfg.__post_init__()
     except ValueError as e:

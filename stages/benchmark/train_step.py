@@ -53,6 +53,7 @@ class TrainStepBenchmarkConfig:
     threads: int = 2           # tracer CPU threads
     torch_threads: int = 1
     seed: int = 0
+    sync_checks: bool = False  # the tracer's checks read back at every trace (the trainer defers them on a GPU)
 
     def __post_init__(self) -> None:
         if any(n < 1 for n in self.rays):
@@ -86,6 +87,7 @@ def bench_row(capture, init, rays_per_step: int, device: str, cfg: TrainStepBenc
     """One row: ``rays_per_step`` random rays (0 = a whole view) per step on ``device``."""
     tracer = Tracer(TracerConfig(num_threads=cfg.threads), device)
     trainer = _trainer(capture, init, rays_per_step, tracer, cfg)
+    trainer.defer_checks = trainer.defer_checks and not cfg.sync_checks
     sync = device_sync(tracer.device)
     for _ in range(cfg.warmup_steps):
         trainer.train_step()
@@ -115,7 +117,8 @@ def bench_row(capture, init, rays_per_step: int, device: str, cfg: TrainStepBenc
     cam = capture.views[0].camera
     row = {"device": tracer.device, "rays": rays_per_step or cam.width * cam.height,
            "whole_view": f"{cam.width}x{cam.height}" if rays_per_step == 0 else None,
-           "n_gaussians": len(trainer.params["means"]), "step_ms": statistics.median(plain),
+           "n_gaussians": len(trainer.params["means"]), "deferred_checks": trainer.defer_checks,
+           "step_ms": statistics.median(plain),
            "step_ms_min": min(plain), "step_cpu_ms": statistics.median(cpu), "profiled_step_ms": median("total")}
     for key in WORK:
         row[f"{key}_ms"] = median(key)
