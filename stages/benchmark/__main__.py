@@ -45,6 +45,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--scene-res", type=int, help="scene types: res x res rays (default 128)")
     p.add_argument("--scene-n", type=int, help="scene types: number of Gaussians (default: each type's full size)")
     p.add_argument("--no-mitsuba", action="store_true", help="scene types: skip the Mitsuba 3 column")
+    p.add_argument("--no-floor", action="store_true", help="scene types: skip the exact-order floor column "
+                   "(boxes an exact t*-order traversal must examine per blended hit; stages/benchmark/floor.py)")
     a = p.parse_args(argv)
     from stages.benchmark.tracer import TracerBenchmarkConfig  # after parsing: --help without torch / Warp
 
@@ -61,6 +63,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
         cfg.scene_n = a.scene_n
     if a.no_mitsuba:
         cfg.mitsuba = False
+    if a.no_floor:
+        cfg.floor = False
     cfg.__post_init__()
     return a.what, cfg, a.out
 

@@ -43,6 +43,7 @@ class TracerBenchmarkConfig:
     scene_res: int = 128      # scene types: res x res rays
     scene_n: int | None = None  # scene types: Gaussians (None = each type's full size)
     mitsuba: bool = True      # scene types: Mitsuba 3 ellipsoids on the same Gaussians and rays (mitsuba_ref.py)
+    floor: bool = True        # scene types: the exact-order floor of candidates per blended hit (floor.py)
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
@@ -208,6 +209,14 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     row["blended_per_ray"] = float(out.blended_count.float().mean())
     row["candidates_per_blended"] = row["candidates_per_ray"] / max(row["blended_per_ray"], 1e-9)
     row["single_candidates_per_blended"] = float(ref.candidates.float().mean()) / max(row["blended_per_ray"], 1e-9)
+    if cfg.floor:  # what an exact-order traversal must examine per blended hit (floor.py), on a sample of the rays
+        from stages.benchmark.floor import exact_order_floor
+
+        lo, hi = (torch.from_numpy(a.numpy()) for a in (ours.bvh.lowers, ours.bvh.uppers))
+        sample = max(32, min(256, 12_800_000 // len(gs)))  # fewer rays on 1M Gaussians (every pair is evaluated)
+        floor = exact_order_floor(gs, origins, dirs, lo, hi, ours.config, rays=sample)
+        row["exact_order_floor"] = floor["floor"]
+        row["floor_rays"] = floor["rays"]
     row["accepted_per_ray"] = float(ref.hit_count.float().mean())  # every accepted hit (single traversal)
     row["hits_found_per_ray"] = float(out.hit_count.float().mean())  # found before the ray stopped
     row["same_as_single"] = bool(torch.equal(out.blended_count, ref.blended_count)
@@ -307,7 +316,8 @@ SCENE_COLUMNS = [
     ("mitsuba ms", "mitsuba_ms", "{:.1f}"), ("mitsuba cpu", "mitsuba_cpu_ms", "{:.0f}"),
     ("mi Mrays/s", "mitsuba_mrays_per_s", "{:.2f}"),
     ("ours/mi", "ours_over_mitsuba", "{:.2f}"), ("ours/mi cpu", "ours_over_mitsuba_cpu", "{:.2f}"),
-    ("cand/blended", "candidates_per_blended", "{:.2f}"), ("single c/b", "single_candidates_per_blended", "{:.1f}"),
+    ("cand/blended", "candidates_per_blended", "{:.2f}"), ("floor", "exact_order_floor", "{:.2f}"),
+    ("single c/b", "single_candidates_per_blended", "{:.1f}"),
     ("blended", "blended_per_ray", "{:.1f}"), ("accepted", "accepted_per_ray", "{:.1f}"),
     ("fused/fwd", "fused_over_forward", "{:.2f}"), ("fused/fwd cpu", "fused_over_forward_cpu", "{:.2f}"),
 ]
@@ -330,4 +340,6 @@ def format_table(result: dict) -> str:
         lines += ["", "scene types (our default = interval traversal; single = the traversal it replaced; mitsuba = "
                   "Mitsuba 3 ellipsoids on the same Gaussians and rays):", *_table(SCENE_COLUMNS, result["scenes"])]
         lines += [f"  {r['scene']}: {r['description']}" for r in result["scenes"]]
+        lines.append("  floor: boxes an exact t*-order traversal must examine per blended hit (those the ray enters "
+                     "before the t* of its last needed hit; stages/benchmark/floor.py, on a sample of the rays)")
     return "\n".join(lines)
