@@ -16,6 +16,13 @@ def chain_kernel(quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.v
                  g_opacity: wp.array(dtype=float), g_quats: wp.array(dtype=wp.vec4),
                  g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float)):
     i = wp.tid()
+    gm = g_w2l[i]
+    if gm == wp.mat33(0.0) and g_opacity[i] == 0.0:
+        # no ray of this trace reached the Gaussian (a reflection segment reaches few): its gradients are zero
+        g_quats[i] = wp.vec4(0.0)
+        g_log_scales[i] = wp.vec3(0.0)
+        g_logits[i] = 0.0
+        return
     qr = quats[i]
     norm = wp.max(wp.length(qr), 1.0e-12)
     q = qr / norm
@@ -28,7 +35,6 @@ def chain_kernel(quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.v
                    2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
     ls = log_scales[i]
     inv_s = wp.vec3(wp.exp(-ls[0]), wp.exp(-ls[1]), wp.exp(-ls[2]))
-    gm = g_w2l[i]
     gls = wp.vec3(0.0)
     gr = wp.mat33(0.0)  # dL/dR
     for r in range(3):

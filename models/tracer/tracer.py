@@ -35,6 +35,7 @@ from models.tracer.launch import (
     empty_ordered,
     grads_struct,
     outputs_view,
+    ray_chunks,
     ray_grads_struct,
     ray_grads_view,
     rows,
@@ -436,8 +437,13 @@ class Tracer:
             inputs_chain = [self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3),
                             self._param_array(logits, float), grads["w2l"], grads["opacity"],
                             g_quats, g_log_scales, g_logits]
+            # one launch per CPU thread over its rows (a CPU launch runs on one core; per Gaussian, no sums)
+            parts = ray_chunks(n, self._threads) if n >= 4096 * self._threads else [(0, n)]
             with self.timer.section("tracer_backward"):
-                wp.launch(chain_kernel, dim=n, device=self.device, inputs=inputs_chain)
+                run_chunks(self._pool, [
+                    (lambda a=a, b=b: wp.launch(chain_kernel, dim=b - a, device=self.device,
+                                                inputs=[x[a:b] for x in inputs_chain]))
+                    for a, b in parts])
         raw = [grads["means"], g_quats, g_log_scales, g_logits, grads["diffuse"], grads["normal"],
                grads["roughness"], grads["f0"]]
         return [to_torch(g, like.device).reshape(like.shape).to(like.dtype) for g, like in zip(raw, inputs)]
