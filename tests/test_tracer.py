@@ -409,6 +409,22 @@ def test_empty_scene_and_no_rays(device):
     assert out.diffuse.shape == (0, 3)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_bvh_constructor_changes_no_hit(device):
+    """The tree's shape (TracerConfig.bvh_constructor) decides what a traversal visits, never what it blends: the
+    outputs are the same, bit for bit, whatever the constructor."""
+    seed = fresh_seed()
+    gs, origins, dirs = scene_and_rays(seed, n=500, res=16, scale=0.25)
+    outs = {c: Tracer(TracerConfig(bvh_constructor=c), device).trace(origins, dirs, gs)
+            for c in ("sah", "median", "auto") + (("lbvh",) if device == "cuda" else ())}
+    ref = outs["sah"]
+    for c, out in outs.items():
+        for layer in ("diffuse", "depth", "normal", "transmittance", "blended_count"):
+            assert torch.equal(getattr(out, layer), getattr(ref, layer)), (seed, c, layer)
+    with pytest.raises(ValueError, match="bvh_constructor"):
+        TracerConfig(bvh_constructor="octree")
+
+
 @pytest.mark.parametrize("traversal", ["interval", "single"])
 def test_deferred_checks_collect_overflow_and_zero_directions(traversal):
     """Inside deferred_checks() a trace reads nothing back: rays that outgrow the replay buffer and zero-length

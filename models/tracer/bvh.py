@@ -26,8 +26,9 @@ class GaussianBvh:
     """Holds the wp.Bvh, the bound arrays it references (refit reads them in place) and
     the packed per-Gaussian records [N] (see structs.vec16) of the last update."""
 
-    def __init__(self, device: str, use_wp_bvh: bool = True):
+    def __init__(self, device: str, use_wp_bvh: bool = True, constructor: str = "auto"):
         self.device = device
+        self.constructor = None if constructor == "auto" else constructor  # wp.Bvh's (None: Warp's default)
         self.use_wp_bvh = use_wp_bvh  # False: only bounds + packed records (ordered traversal)
         self.bvh: wp.Bvh | None = None
         self.lowers: wp.array | None = None
@@ -72,7 +73,7 @@ class GaussianBvh:
         if not self.use_wp_bvh:
             self.bvh, self.count = None, n
         elif self.last_was_rebuild:
-            self.bvh = wp.Bvh(self.lowers, self.uppers)
+            self.bvh = wp.Bvh(self.lowers, self.uppers, constructor=self.constructor)
             self.count = n
             self._built_means = means.detach().float().clone()
         else:

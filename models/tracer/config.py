@@ -38,6 +38,11 @@ class TracerConfig:
                                               "slots raises (null: no ceiling, memory permitting)", minimum=2)
     num_threads: int = setting(2, "CPU only: rays are split over this many Python threads (one Warp launch each)",
                                runtime=True, minimum=1)
+    bvh_constructor: str = setting("auto", "how the BVH over the Gaussians' boxes is built (Warp): sah (surface area "
+                                   "heuristic, on the CPU; a GPU tree is built on the CPU and copied), lbvh (on the "
+                                   "GPU, faster to build), median; auto = Warp's choice (sah on a CPU, lbvh on a GPU). "
+                                   "The hits and their order do not depend on it", runtime=True,
+                                   enum=["auto", "sah", "lbvh", "median"])
     world_aabb_only: bool = setting(False, "ablation: skip the per-candidate ellipsoid test before the response "
                                     "(world AABB only)")
     always_rebuild: bool = setting(False, "ablation: rebuild the BVH on every update() instead of refitting it")
@@ -64,6 +69,8 @@ class TracerConfig:
             raise ValueError(f"traversal must be one of {', '.join(TRAVERSALS)}, got {self.traversal!r}")
         if not self.window > 0:
             raise ValueError(f"window must be > 0, got {self.window}")
+        if self.bvh_constructor not in ("auto", "sah", "lbvh", "median"):
+            raise ValueError(f"bvh_constructor must be auto, sah, lbvh or median, got {self.bvh_constructor!r}")
         if self.ordered_heap_size < 2:
             raise ValueError(f"ordered_heap_size must be >= 2, got {self.ordered_heap_size}")
         if self.ordered_leaf_size < 1:

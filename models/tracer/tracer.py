@@ -69,7 +69,7 @@ class Tracer:
             raise ValueError(f"unknown or unavailable Warp device {device!r}: {exc}") from exc
         self.is_cpu = wp.get_device(self.device).is_cpu
         # (the ordered traversal keeps the wp.Bvh too: rays whose node heap overflows fall back to it)
-        self.bvh = GaussianBvh(self.device)
+        self.bvh = GaussianBvh(self.device, constructor=self.config.bvh_constructor)
         self.ordered = OrderedBvhBuilder(self.device, self.config.ordered_leaf_size) \
             if self.config.traversal == "ordered" else None
         self._no_ordered = empty_ordered(self.device)

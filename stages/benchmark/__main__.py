@@ -45,6 +45,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--scene-res", type=int, help="scene types: res x res rays (default 128)")
     p.add_argument("--scene-n", type=int, help="scene types: number of Gaussians (default: each type's full size)")
     p.add_argument("--no-mitsuba", action="store_true", help="scene types: skip the Mitsuba 3 column")
+    p.add_argument("--bvh", choices=["auto", "sah", "lbvh", "median"], help="BVH constructor of our tracers "
+                   "(TracerConfig.bvh_constructor; auto: sah on a CPU, lbvh on a GPU)")
     p.add_argument("--no-floor", action="store_true", help="scene types: skip the exact-order floor column "
                    "(boxes an exact t*-order traversal must examine per blended hit; stages/benchmark/floor.py)")
     a = p.parse_args(argv)
@@ -65,6 +67,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
         cfg.mitsuba = False
     if a.no_floor:
         cfg.floor = False
+    if a.bvh is not None:
+        cfg.bvh = a.bvh
     cfg.__post_init__()
     return a.what, cfg, a.out
 

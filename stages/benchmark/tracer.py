@@ -44,6 +44,7 @@ class TracerBenchmarkConfig:
     scene_n: int | None = None  # scene types: Gaussians (None = each type's full size)
     mitsuba: bool = True      # scene types: Mitsuba 3 ellipsoids on the same Gaussians and rays (mitsuba_ref.py)
     floor: bool = True        # scene types: the exact-order floor of candidates per blended hit (floor.py)
+    bvh: str = "auto"         # TracerConfig.bvh_constructor of every tracer compared
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
@@ -82,7 +83,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     gs = benchmark_scene(n, cfg.seed).to(device=tdev).requires_grad_()
     origins, dirs = (t.to(tdev) for t in pinhole_rays(res))
     threads = max(cfg.threads)
-    base = TracerConfig(num_threads=threads)
+    base = TracerConfig(num_threads=threads, bvh_constructor=cfg.bvh)
     tracer = Tracer(base, cfg.device)
     row: dict = {"n_gaussians": n, "resolution": res, "rays": res * res, "threads": threads}
 
@@ -122,15 +123,15 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     row["refit_share"] = row["refit_ms"] / row["step_ms"]
     row["rebuild_share"] = row["rebuild_ms"] / (row["forward_backward_ms"] + row["rebuild_ms"])
 
-    kbuf = Tracer(TracerConfig(num_threads=threads, traversal="kbuffer"), cfg.device)
+    kbuf = Tracer(TracerConfig(num_threads=threads, traversal="kbuffer", bvh_constructor=cfg.bvh), cfg.device)
     row["kbuffer_forward_ms"], row["kbuffer_forward_cpu_ms"] = _best(lambda: forward(kbuf), cfg.repeats)
     row["single_vs_kbuffer_speedup"] = row["kbuffer_forward_ms"] / row["forward_ms"]
 
-    aabb = Tracer(TracerConfig(num_threads=threads, world_aabb_only=True), cfg.device)
+    aabb = Tracer(TracerConfig(num_threads=threads, world_aabb_only=True, bvh_constructor=cfg.bvh), cfg.device)
     row["aabb_forward_ms"], row["aabb_forward_cpu_ms"] = _best(lambda: forward(aabb), cfg.repeats)
 
     # stretch: own BVH traversed front to back with early termination
-    ordered = Tracer(TracerConfig(num_threads=threads, traversal="ordered"), cfg.device)
+    ordered = Tracer(TracerConfig(num_threads=threads, traversal="ordered", bvh_constructor=cfg.bvh), cfg.device)
     out_ordered = forward(ordered)
     row["ordered_forward_ms"], row["ordered_forward_cpu_ms"] = _best(lambda: forward(ordered), cfg.repeats)
     row["ordered_candidates_per_ray"] = float(out_ordered.candidates.float().mean())
@@ -142,7 +143,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     row["refit_share_cpu"] = row["refit_cpu_ms"] / (row["forward_backward_cpu_ms"] + row["refit_cpu_ms"])
 
     # thread counts measured interleaved (A B A B ...) so that both see the same machine load
-    tracers = {t: Tracer(TracerConfig(num_threads=t), cfg.device) for t in sorted(set(cfg.threads))}
+    tracers = {t: Tracer(TracerConfig(num_threads=t, bvh_constructor=cfg.bvh), cfg.device) for t in sorted(set(cfg.threads))}
     for tr in tracers.values():
         forward(tr)
     best = {t: math.inf for t in tracers}
@@ -177,8 +178,8 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     tdev = _torch_device(cfg.device)
     gs, origins, dirs = gs.to(device=tdev).requires_grad_(), origins.to(tdev), dirs.to(tdev)
     threads = max(cfg.threads)
-    ours = Tracer(TracerConfig(num_threads=threads), cfg.device)
-    single = Tracer(TracerConfig(num_threads=threads, traversal="single"), cfg.device)
+    ours = Tracer(TracerConfig(num_threads=threads, bvh_constructor=cfg.bvh), cfg.device)
+    single = Tracer(TracerConfig(num_threads=threads, traversal="single", bvh_constructor=cfg.bvh), cfg.device)
     row: dict = {"scene": name, "description": SCENE_TYPES[name][0], "n_gaussians": len(gs), "rays": len(dirs),
                  "threads": threads}
 
