@@ -122,6 +122,27 @@ def test_train_step_quick_writes_complete_json(tmp_path, capsys):
     assert "trace fwd" in printed and "overhead floor (cpu, 64 rays)" in printed
 
 
+def test_gpu_busy_is_the_median_nvml_utilisation_while_steps_repeat(monkeypatch):
+    """GPU busy: NVML's utilisation (percent) sampled while the step repeats, the first quarter of the samples
+    dropped (NVML averages over its own period, which may reach back before the loop), median, as a fraction;
+    None where NVML cannot answer (no GPU, no pynvml): no figure rather than an error."""
+    import torch
+
+    from stages.benchmark.train_step import gpu_busy
+
+    values = iter([0] + [70, 80, 90] * 1000)  # the probe call, then the samples
+    monkeypatch.setattr(torch.cuda, "utilization", lambda *a: next(values, 80))
+    steps = []
+    busy = gpu_busy(lambda: steps.append(1), lambda: None, seconds=0.3, interval=0.01)
+    assert steps and busy in (0.7, 0.75, 0.8, 0.85, 0.9)
+
+    def no_nvml(*a):
+        raise RuntimeError("pynvml does not seem to be installed")
+
+    monkeypatch.setattr(torch.cuda, "utilization", no_nvml)
+    assert gpu_busy(lambda: None, lambda: None, seconds=0.05) is None
+
+
 def test_section_timer_is_exclusive_of_nested_sections():
     import time
 
