@@ -467,6 +467,15 @@ def test_deferred_checks_collect_overflow_and_zero_directions(traversal):
     with pytest.raises(RuntimeError, match="already active"):
         with tracer.deferred_checks(), tracer.deferred_checks():
             pass
+    # trace_fused accumulates gradients (a redo would add them twice): it checks at once, deferred or not
+    target = {"diffuse": torch.full((len(dirs), 3), 0.5)}
+    fused = Tracer(TracerConfig(traversal=traversal, replay_capacity=2))
+    _, loss_ref = Tracer(TracerConfig(traversal=traversal)).trace_fused(origins, dirs, gs, target, {"diffuse": 1.0})
+    with fused.deferred_checks() as checks:
+        _, loss = fused.trace_fused(origins, dirs, gs, target, {"diffuse": 1.0})
+        with pytest.raises(ValueError, match="zero-length"):
+            fused.trace_fused(origins, bad, gs, target, {"diffuse": 1.0})
+    assert fused.capacity > 2 and checks.needed == [] and torch.equal(loss, loss_ref)
 
 
 def test_user_mistakes_raise_named_errors():

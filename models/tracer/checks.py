@@ -18,6 +18,8 @@ one a checked run gives.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 ZERO_DIRS_MESSAGE = "dirs contains zero-length directions"
@@ -26,11 +28,11 @@ ZERO_DIRS_MESSAGE = "dirs contains zero-length directions"
 class DeferredChecks:
     """Device scalars collected by the traces run inside ``Tracer.deferred_checks()``."""
 
-    def __init__(self, device: torch.device):
+    def __init__(self, device: torch.device, grow: Callable[[int], None]):
         self.device = device
+        self.grow = grow                          # the tracer's: make room for a ray that needed this many slots
         self.needed: list[torch.Tensor] = []     # per trace: the most replay slots a ray needed (0: none overflowed)
         self.zero_dirs: list[torch.Tensor] = []  # per trace: how many directions had zero length
-        self.grow = None                          # set by the tracer: the capacity to use after ``needed`` slots
 
     def flags(self) -> torch.Tensor:
         """[2] float64 on the device: (most slots a ray needed, 0 if none overflowed; zero-length directions)."""

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from models.settings import setting
 
 TRAVERSALS = ("interval", "single", "kbuffer", "ordered")  # index = TraceParams.traversal
+BVH_CONSTRUCTORS = ("auto", "sah", "lbvh", "median")  # auto: Warp's choice (sah on a CPU, lbvh on a GPU)
 
 
 @dataclass
@@ -42,7 +43,7 @@ class TracerConfig:
                                    "heuristic, on the CPU; a GPU tree is built on the CPU and copied), lbvh (on the "
                                    "GPU, faster to build), median; auto = Warp's choice (sah on a CPU, lbvh on a GPU). "
                                    "The hits and their order do not depend on it", runtime=True,
-                                   enum=["auto", "sah", "lbvh", "median"])
+                                   enum=list(BVH_CONSTRUCTORS))
     world_aabb_only: bool = setting(False, "ablation: skip the per-candidate ellipsoid test before the response "
                                     "(world AABB only)")
     always_rebuild: bool = setting(False, "ablation: rebuild the BVH on every update() instead of refitting it")
@@ -69,8 +70,9 @@ class TracerConfig:
             raise ValueError(f"traversal must be one of {', '.join(TRAVERSALS)}, got {self.traversal!r}")
         if not self.window > 0:
             raise ValueError(f"window must be > 0, got {self.window}")
-        if self.bvh_constructor not in ("auto", "sah", "lbvh", "median"):
-            raise ValueError(f"bvh_constructor must be auto, sah, lbvh or median, got {self.bvh_constructor!r}")
+        if self.bvh_constructor not in BVH_CONSTRUCTORS:
+            raise ValueError(f"bvh_constructor must be one of {', '.join(BVH_CONSTRUCTORS)}, "
+                             f"got {self.bvh_constructor!r}")
         if self.ordered_heap_size < 2:
             raise ValueError(f"ordered_heap_size must be >= 2, got {self.ordered_heap_size}")
         if self.ordered_leaf_size < 1:

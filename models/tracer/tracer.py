@@ -178,11 +178,11 @@ class Tracer:
     @contextlib.contextmanager
     def deferred_checks(self):
         """Traces inside do not read back replay overflow or zero-length directions (a host-device sync each, on
-        a GPU): they collect device flags in the yielded ``DeferredChecks`` (see models/tracer/checks.py)."""
+        a GPU): they collect device flags in the yielded ``DeferredChecks`` (see models/tracer/checks.py).
+        ``trace_fused`` still checks at once: it accumulates gradients, which a redo would add twice."""
         if self._checks is not None:
             raise RuntimeError("deferred_checks() is already active on this tracer")
-        checks = DeferredChecks(self.torch_device)
-        checks.grow = lambda most: self._grow(most, None)
+        checks = DeferredChecks(self.torch_device, lambda most: self._grow(most, None))
         self._checks = checks
         try:
             yield checks
@@ -194,7 +194,7 @@ class Tracer:
         """Trace R rays. origins, dirs: [R, 3]. Differentiable wrt the Gaussian parameters
         (diffuse, depth, normal, roughness, f0 and transmittance outputs)."""
         with self.timer.section("tracer_host"):
-            origins, dirs = self._check_rays(origins, dirs)
+            origins, dirs = self._check_rays(origins, dirs, deferred=self._checks is not None)
             self._ensure_updated(gaussians)
             res = TraceFunction.apply(self, origins, dirs, *gaussians.params().values())
         diffuse, depth, normal, rough, f0, trans, hits, blended, cand, obb = res
@@ -262,7 +262,7 @@ class Tracer:
         return out, loss
 
     # ------------------------------------------------------------------ internals
-    def _check_rays(self, origins, dirs):
+    def _check_rays(self, origins, dirs, deferred: bool = False):
         for name, t in (("origins", origins), ("dirs", dirs)):
             if not isinstance(t, torch.Tensor):
                 raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
@@ -270,7 +270,7 @@ class Tracer:
                 raise ValueError(f"{name} must have shape [R, 3], got {tuple(t.shape)}")
         if origins.shape != dirs.shape:
             raise ValueError(f"origins {tuple(origins.shape)} and dirs {tuple(dirs.shape)} differ in shape")
-        if self._checks is not None:  # no read-back now: counted on the device, settled by the caller
+        if deferred:  # no read-back now: counted on the device, settled by the caller
             if dirs.shape[0]:
                 self._checks.zero_dirs.append((dirs.detach().norm(dim=1) == 0).sum())
         elif dirs.shape[0] and bool((dirs.detach().norm(dim=1) == 0).any()):
@@ -365,7 +365,7 @@ class Tracer:
             with self.timer.section("tracer_forward"):
                 run_chunks(self._pool, jobs)
             needed = to_torch(outs["needed"], torch_device_for(self.device) or torch.device("cpu"))
-            if self._checks is not None:  # settled by the caller, after its own read-back
+            if self._checks is not None and not with_grads:  # trace(): settled by the caller after its read-back
                 self._checks.needed.append(needed.max())
                 break
             n_over, most = (int(v) for v in torch.stack([(needed > 0).sum(), needed.max().long()]).tolist())

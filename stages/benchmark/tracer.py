@@ -79,12 +79,11 @@ def _best(fn, repeats: int) -> tuple[float, float]:
 
 
 def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
-    tdev = _torch_device(cfg.device)
+    threads = max(cfg.threads)
+    tracer = Tracer(_config(cfg, threads), cfg.device)
+    tdev = tracer.torch_device  # scene, rays and targets where the tracer reads them without copies
     gs = benchmark_scene(n, cfg.seed).to(device=tdev).requires_grad_()
     origins, dirs = (t.to(tdev) for t in pinhole_rays(res))
-    threads = max(cfg.threads)
-    base = TracerConfig(num_threads=threads, bvh_constructor=cfg.bvh)
-    tracer = Tracer(base, cfg.device)
     row: dict = {"n_gaussians": n, "resolution": res, "rays": res * res, "threads": threads}
 
     def forward(tr=tracer):
@@ -123,15 +122,15 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     row["refit_share"] = row["refit_ms"] / row["step_ms"]
     row["rebuild_share"] = row["rebuild_ms"] / (row["forward_backward_ms"] + row["rebuild_ms"])
 
-    kbuf = Tracer(TracerConfig(num_threads=threads, traversal="kbuffer", bvh_constructor=cfg.bvh), cfg.device)
+    kbuf = Tracer(_config(cfg, threads, traversal="kbuffer"), cfg.device)
     row["kbuffer_forward_ms"], row["kbuffer_forward_cpu_ms"] = _best(lambda: forward(kbuf), cfg.repeats)
     row["single_vs_kbuffer_speedup"] = row["kbuffer_forward_ms"] / row["forward_ms"]
 
-    aabb = Tracer(TracerConfig(num_threads=threads, world_aabb_only=True, bvh_constructor=cfg.bvh), cfg.device)
+    aabb = Tracer(_config(cfg, threads, world_aabb_only=True), cfg.device)
     row["aabb_forward_ms"], row["aabb_forward_cpu_ms"] = _best(lambda: forward(aabb), cfg.repeats)
 
     # stretch: own BVH traversed front to back with early termination
-    ordered = Tracer(TracerConfig(num_threads=threads, traversal="ordered", bvh_constructor=cfg.bvh), cfg.device)
+    ordered = Tracer(_config(cfg, threads, traversal="ordered"), cfg.device)
     out_ordered = forward(ordered)
     row["ordered_forward_ms"], row["ordered_forward_cpu_ms"] = _best(lambda: forward(ordered), cfg.repeats)
     row["ordered_candidates_per_ray"] = float(out_ordered.candidates.float().mean())
@@ -143,7 +142,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     row["refit_share_cpu"] = row["refit_cpu_ms"] / (row["forward_backward_cpu_ms"] + row["refit_cpu_ms"])
 
     # thread counts measured interleaved (A B A B ...) so that both see the same machine load
-    tracers = {t: Tracer(TracerConfig(num_threads=t, bvh_constructor=cfg.bvh), cfg.device) for t in sorted(set(cfg.threads))}
+    tracers = {t: Tracer(_config(cfg, t), cfg.device) for t in sorted(set(cfg.threads))}
     for tr in tracers.values():
         forward(tr)
     best = {t: math.inf for t in tracers}
@@ -173,13 +172,13 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
 def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     """One scene type: our default (interval) traversal, the single traversal it replaced and Mitsuba 3 on the
     same Gaussians and rays, timed interleaved (best of ``repeats``); counts per ray; fused / forward."""
-    gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
-    mitsuba_input = gs
-    tdev = _torch_device(cfg.device)
-    gs, origins, dirs = gs.to(device=tdev).requires_grad_(), origins.to(tdev), dirs.to(tdev)
     threads = max(cfg.threads)
-    ours = Tracer(TracerConfig(num_threads=threads, bvh_constructor=cfg.bvh), cfg.device)
-    single = Tracer(TracerConfig(num_threads=threads, traversal="single", bvh_constructor=cfg.bvh), cfg.device)
+    ours = Tracer(_config(cfg, threads), cfg.device)
+    single = Tracer(_config(cfg, threads, traversal="single"), cfg.device)
+    gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
+    mitsuba_input = gs  # (the CPU copy: Mitsuba builds its scene from host arrays)
+    tdev = ours.torch_device
+    gs, origins, dirs = gs.to(device=tdev).requires_grad_(), origins.to(tdev), dirs.to(tdev)
     row: dict = {"scene": name, "description": SCENE_TYPES[name][0], "n_gaussians": len(gs), "rays": len(dirs),
                  "threads": threads}
 
@@ -229,12 +228,12 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
         row["ours_over_mitsuba"] = row["forward_ms"] / row["mitsuba_ms"]
         row["ours_over_mitsuba_cpu"] = row["forward_cpu_ms"] / row["mitsuba_cpu_ms"]
         row["mitsuba_mean_abs_diff"] = float((torch.from_numpy(rgb) - out.diffuse.cpu()).abs().mean())
+    target = torch.full((len(dirs), 3), 0.5, device=tdev)
+
     def fused():
         for v in gs.params().values():
             v.grad = None
         return ours.trace_fused(origins, dirs, gs, {"diffuse": target}, {"diffuse": 1.0})
-
-    target = torch.full((len(dirs), 3), 0.5, device=tdev)
 
     row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats)
     row["fused_over_forward"] = row["forward_backward_ms"] / row["forward_ms"]
@@ -244,9 +243,9 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     return row
 
 
-def _torch_device(device: str) -> torch.device:
-    """Where the benchmark keeps scene, rays and targets: on the tracer's GPU (no copies per call), else the CPU."""
-    return torch.device(device) if str(device).startswith("cuda") and torch.cuda.is_available() else torch.device("cpu")
+def _config(cfg: TracerBenchmarkConfig, threads: int, **kw) -> TracerConfig:
+    """A compared tracer's settings: the benchmark's threads and BVH constructor, plus ``kw``."""
+    return TracerConfig(num_threads=threads, bvh_constructor=cfg.bvh, **kw)
 
 
 def _met(value: float, op: str, threshold: float) -> bool:
