@@ -621,3 +621,48 @@ def test_other_tensors_of_a_scene_elsewhere_rebuild_the_tree_a_moved_object_refi
         edited.means[:30] += torch.tensor([0.3, 0.0, 0.0])  # one "object" of 10% moved
     tracer.trace(origins, dirs, edited)
     assert not tracer.bvh.last_was_rebuild  # most Gaussians stayed: refit
+
+
+def test_gather_kernel_sums_thread_rows_chains_to_raw_parameters_and_clears_rows():
+    """The backward's gather (models/tracer/chain.py) against torch: the per-thread rows summed, dL/dM and
+    dL/dopacity taken through world_to_local / sigmoid by autograd to the raw quaternion, log-scales and logit;
+    a Gaussian no row touched gets exact zeros, and every row is zero afterwards (the next pass reuses them)."""
+    from models.gaussians import opacities_from_logits, world_to_local
+    from models.tracer.chain import gather_kernel
+    from models.tracer.launch import GRAD_FIELDS
+
+    seed = fresh_seed()
+    gen = torch.Generator().manual_seed(seed)
+    n, threads, start = 37, 3, 5
+    quats = torch.randn(n, 4, generator=gen, dtype=torch.float64) * torch.rand(n, 1, generator=gen, dtype=torch.float64) * 3
+    log_scales = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    logits = torch.randn(n, generator=gen, dtype=torch.float64) * 8
+    widths = {"means": 3, "w2l": 9, "opacity": 1, "diffuse": 3, "normal": 3, "roughness": 1, "f0": 3}
+    rows = {k: torch.randn(threads, n, w, generator=gen, dtype=torch.float64) for k, w in widths.items()}
+    for r in rows.values():
+        r[:, 11] = 0.0  # untouched by every thread
+    flat = {k: wp.array(rows[k].reshape(threads * n, *((3, 3) if k == "w2l" else (widths[k],) if widths[k] > 1 else ()))
+                        .float().numpy(), dtype=GRAD_FIELDS[k], device="cpu") for k in widths}
+    outs = [wp.zeros(n, dtype=dt, device="cpu") for dt in (wp.vec3, wp.vec4, wp.vec3, float, wp.vec3, wp.vec3, float,
+                                                            wp.vec3)]
+    wp.launch(gather_kernel, dim=n - start, device="cpu",
+              inputs=[n, threads, start, wp.array(quats.float().numpy(), dtype=wp.vec4),
+                      wp.array(log_scales.float().numpy(), dtype=wp.vec3), wp.array(logits.float().numpy(), dtype=float),
+                      *(flat[k] for k in GRAD_FIELDS), *outs])
+    got = [torch.from_numpy(o.numpy()).double().reshape(n, -1) for o in outs]
+
+    total = {k: v.sum(0) for k, v in rows.items()}
+    q, ls, lg = (x.clone().requires_grad_() for x in (quats, log_scales, logits))
+    obj = (world_to_local(q, ls).reshape(n, 9) * total["w2l"]).sum() + (opacities_from_logits(lg) * total["opacity"][:, 0]).sum()
+    obj.backward()
+    want = [total["means"], q.grad, ls.grad, lg.grad[:, None], total["diffuse"], total["normal"], total["roughness"],
+            total["f0"]]
+    for name, g_, w in zip(["means", "quats", "log_scales", "logits", "diffuse", "normal", "roughness", "f0"], got, want):
+        assert torch.all(g_[:start] == 0), (name, seed)  # before the launch's first Gaussian: untouched
+        assert torch.all(g_[11] == 0), (name, seed)
+        err = (g_[start:] - w[start:]).norm() / w[start:].norm()
+        assert err < 1e-5, (name, float(err), seed)
+    for k, a in flat.items():
+        left = torch.from_numpy(a.numpy()).reshape(threads, n, -1)
+        assert torch.all(left[:, start:] == 0), (k, seed)
+        assert torch.equal(left[:, :start].double(), rows[k][:, :start].reshape(threads, start, -1).float().double()), k

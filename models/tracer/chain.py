@@ -1,5 +1,6 @@
-"""Chain kernel: gradients wrt the activated geometry (M = S^-1 R^T, opacity) to the raw
-parameters (quaternion wxyz before normalisation, log-scales, opacity logit), in Warp.
+"""Gather kernel: the backward's per-thread gradient rows summed, and the geometry part taken from the activated
+values (M = S^-1 R^T, opacity) to the raw parameters (quaternion wxyz before normalisation, log-scales, opacity
+logit), in one pass over the Gaussians that also clears the rows for the next backward.
 
 M[r][c] = R[c][r] / s_r, so dL/dlog s_r = -sum_c G_M[r][c] M[r][c] and
 dL/dR[c][r] = G_M[r][c] / s_r; R(q) as activations.quats_to_rotmats, q = q_raw / |q_raw|.
@@ -10,29 +11,89 @@ from __future__ import annotations
 import warp as wp
 
 
-@wp.kernel
-def chain_kernel(quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
-                 opacity_logits: wp.array(dtype=float), g_w2l: wp.array(dtype=wp.mat33),
-                 g_opacity: wp.array(dtype=float), g_quats: wp.array(dtype=wp.vec4),
-                 g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float)):
-    i = wp.tid()
-    gm = g_w2l[i]
-    if gm == wp.mat33(0.0) and g_opacity[i] == 0.0:
-        # no ray of this trace reached the Gaussian (a reflection segment reaches few): its gradients are zero
-        g_quats[i] = wp.vec4(0.0)
-        g_log_scales[i] = wp.vec3(0.0)
-        g_logits[i] = 0.0
-        return
-    qr = quats[i]
+@wp.func
+def chain_quat(qr: wp.vec4, gr: wp.mat33) -> wp.vec4:
+    """dL/dq_raw from dL/dR (R of the normalised q)."""
     norm = wp.max(wp.length(qr), 1.0e-12)
     q = qr / norm
     w = q[0]
     x = q[1]
     y = q[2]
     z = q[3]
-    rot = wp.mat33(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-                   2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-                   2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
+    gw = 2.0 * (-z * gr[0, 1] + y * gr[0, 2] + z * gr[1, 0] - x * gr[1, 2] - y * gr[2, 0] + x * gr[2, 1])
+    gx = 2.0 * (y * gr[0, 1] + z * gr[0, 2] + y * gr[1, 0] - 2.0 * x * gr[1, 1] - w * gr[1, 2]
+                + z * gr[2, 0] + w * gr[2, 1] - 2.0 * x * gr[2, 2])
+    gy = 2.0 * (-2.0 * y * gr[0, 0] + x * gr[0, 1] + w * gr[0, 2] + x * gr[1, 0] + z * gr[1, 2]
+                - w * gr[2, 0] + z * gr[2, 1] - 2.0 * y * gr[2, 2])
+    gz = 2.0 * (-2.0 * z * gr[0, 0] - w * gr[0, 1] + x * gr[0, 2] + w * gr[1, 0] - 2.0 * z * gr[1, 1]
+                + y * gr[1, 2] + x * gr[2, 0] + y * gr[2, 1])
+    gq = wp.vec4(gw, gx, gy, gz)
+    return (gq - q * wp.dot(q, gq)) / norm
+
+
+@wp.func
+def rotation(qr: wp.vec4) -> wp.mat33:
+    q = qr / wp.max(wp.length(qr), 1.0e-12)
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    return wp.mat33(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+                    2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+                    2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
+
+
+@wp.kernel
+def gather_kernel(n: int, threads: int, start: int,
+                  quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
+                  opacity_logits: wp.array(dtype=float),
+                  rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
+                  rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
+                  rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
+                  rows_f0: wp.array(dtype=wp.vec3),
+                  g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
+                  g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
+                  g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
+                  g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+    """Gaussian i = start + tid: the sum over ``threads`` rows of n (row k holds Gaussian i at k * n + i), each row
+    entry set back to zero; then the raw-parameter gradients."""
+    i = wp.tid() + start
+    gmean = wp.vec3(0.0)
+    gm = wp.mat33(0.0)
+    gop = float(0.0)
+    gdif = wp.vec3(0.0)
+    gnor = wp.vec3(0.0)
+    grou = float(0.0)
+    gf0 = wp.vec3(0.0)
+    for k in range(threads):
+        j = k * n + i
+        gmean += rows_means[j]
+        gm += rows_w2l[j]
+        gop += rows_opacity[j]
+        gdif += rows_diffuse[j]
+        gnor += rows_normal[j]
+        grou += rows_roughness[j]
+        gf0 += rows_f0[j]
+        rows_means[j] = wp.vec3(0.0)
+        rows_w2l[j] = wp.mat33(0.0)
+        rows_opacity[j] = 0.0
+        rows_diffuse[j] = wp.vec3(0.0)
+        rows_normal[j] = wp.vec3(0.0)
+        rows_roughness[j] = 0.0
+        rows_f0[j] = wp.vec3(0.0)
+    g_means[i] = gmean
+    g_diffuse[i] = gdif
+    g_normal[i] = gnor
+    g_roughness[i] = grou
+    g_f0[i] = gf0
+    if gm == wp.mat33(0.0) and gop == 0.0:
+        # no ray of this trace reached the Gaussian (a reflection segment reaches few): its gradients are zero
+        g_quats[i] = wp.vec4(0.0)
+        g_log_scales[i] = wp.vec3(0.0)
+        g_logits[i] = 0.0
+        return
+    qr = quats[i]
+    rot = rotation(qr)
     ls = log_scales[i]
     inv_s = wp.vec3(wp.exp(-ls[0]), wp.exp(-ls[1]), wp.exp(-ls[2]))
     gls = wp.vec3(0.0)
@@ -43,17 +104,9 @@ def chain_kernel(quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.v
             acc += gm[r, c] * rot[c, r] * inv_s[r]
             gr[c, r] = gm[r, c] * inv_s[r]
         gls[r] = -acc
-    gw = 2.0 * (-z * gr[0, 1] + y * gr[0, 2] + z * gr[1, 0] - x * gr[1, 2] - y * gr[2, 0] + x * gr[2, 1])
-    gx = 2.0 * (y * gr[0, 1] + z * gr[0, 2] + y * gr[1, 0] - 2.0 * x * gr[1, 1] - w * gr[1, 2]
-                + z * gr[2, 0] + w * gr[2, 1] - 2.0 * x * gr[2, 2])
-    gy = 2.0 * (-2.0 * y * gr[0, 0] + x * gr[0, 1] + w * gr[0, 2] + x * gr[1, 0] + z * gr[1, 2]
-                - w * gr[2, 0] + z * gr[2, 1] - 2.0 * y * gr[2, 2])
-    gz = 2.0 * (-2.0 * z * gr[0, 0] - w * gr[0, 1] + x * gr[0, 2] + w * gr[1, 0] - 2.0 * z * gr[1, 1]
-                + y * gr[1, 2] + x * gr[2, 0] + y * gr[2, 1])
-    gq = wp.vec4(gw, gx, gy, gz)
-    g_quats[i] = (gq - q * wp.dot(q, gq)) / norm
+    g_quats[i] = chain_quat(qr, gr)
     g_log_scales[i] = gls
     # dsigmoid/dx = s (1 - s) = e / (1 + e)^2 with e = exp(-|x|): 1 - s would round to 0 in
     # float32 for x > ~16.6 (and lose ~6e-8 / (1 - s) relative precision before that)
     e = wp.exp(-wp.abs(opacity_logits[i]))
-    g_logits[i] = g_opacity[i] * e / ((1.0 + e) * (1.0 + e))
+    g_logits[i] = gop * e / ((1.0 + e) * (1.0 + e))

@@ -95,8 +95,29 @@ def ray_grads_view(arrays: dict[str, wp.array], a: int, b: int) -> RayGrads:
     return s
 
 
-def allocate_grads(n: int, device: str) -> dict[str, wp.array]:
-    return {k: wp.zeros(n, dtype=dt, device=device) for k, dt in GRAD_FIELDS.items()}
+class GradRows:
+    """The backward's gradient accumulators wrt the activated values: one row of n entries per CPU thread (CPU
+    atomics are not safe across concurrent launches), flat [threads * n] per field. Kept by the tracer between
+    backward passes: the gather kernel (models/tracer/chain.py) that sums the rows also sets them back to zero, so
+    no pass clears (or allocates) 23 floats per Gaussian and thread, and nothing adds rows in torch."""
+
+    def __init__(self, n: int, threads: int, device: str):
+        self.n, self.threads, self.device = n, threads, device
+        self.flat = {k: wp.zeros(threads * n, dtype=dt, device=device) for k, dt in GRAD_FIELDS.items()}
+        self.structs = [grads_struct({k: v[i * n:(i + 1) * n] for k, v in self.flat.items()})
+                        for i in range(threads)]
+        self.dirty = False  # handed to a launch and not gathered since (an error in between): clear before reuse
+
+    def fits(self, n: int, threads: int, device: str) -> bool:
+        return (self.n, self.threads, self.device) == (n, threads, device)
+
+    def take(self) -> list:
+        """The per-thread structs, all zero."""
+        if self.dirty:
+            for v in self.flat.values():
+                v.zero_()
+        self.dirty = True
+        return self.structs
 
 
 def grads_struct(arrays: dict[str, wp.array]) -> GaussianGrads:
@@ -138,14 +159,3 @@ def empty_ordered(device: str) -> OrderedBvh:
     b.heap_keys = wp.zeros((1, 1), dtype=float, device=device)
     b.heap_nodes = wp.zeros((1, 1), dtype=wp.int32, device=device)
     return b
-
-
-def sum_grads(per_thread: list[dict[str, wp.array]]) -> dict[str, wp.array]:
-    """Sum per-thread gradient buffers into the first (CPU atomics are not safe across
-    concurrent launches). Only CPU launches are split over threads."""
-    total = per_thread[0]
-    for other in per_thread[1:]:
-        assert total["means"].device.is_cpu
-        for k in total:
-            wp.to_torch(total[k], requires_grad=False).add_(wp.to_torch(other[k], requires_grad=False))
-    return total

@@ -19,28 +19,27 @@ import torch
 import warp as wp
 
 import models.tracer.kernels as kernels
-from models.gaussians.scene import Gaussians
+from models.gaussians.scene import PARAM_SHAPES, Gaussians
 from models.profiling import NO_TIMER
 from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
-from models.tracer.chain import chain_kernel
+from models.tracer.chain import gather_kernel
 from models.tracer.checks import ZERO_DIRS_MESSAGE, DeferredChecks
 from models.tracer.config import TRAVERSALS, TracerConfig
 from models.tracer.interop import is_alias, to_torch, to_warp, torch_device_for
 from models.tracer.launch import (
+    GRAD_FIELDS,
     RAY_GRAD_FIELDS,
+    GradRows,
     ReplayArrays,
-    allocate_grads,
     allocate_outputs,
     empty_ordered,
-    grads_struct,
     outputs_view,
     ray_chunks,
     ray_grads_struct,
     ray_grads_view,
     rows,
     run_chunks,
-    sum_grads,
     thread_stripes,
 )
 from models.tracer.ordered_bvh import OrderedBvh, OrderedBvhBuilder
@@ -85,6 +84,7 @@ class Tracer:
         self._threads = threads
         self._scene_key = None
         self._aliases: dict[tuple, wp.array] = {}  # Warp views of the parameters of the last update()
+        self._grad_rows: GradRows | None = None  # the backward's per-thread accumulators, kept between passes
         self._loaded = False
         self.last_overflow_rays = 0
         self._checks: DeferredChecks | None = None  # inside deferred_checks(): the traces' flags, not read back
@@ -248,14 +248,14 @@ class Tracer:
             wp.launch(kernels.fused_kernel, dim=b - a, device=self.device,
                       inputs=[o[a:b], d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
                               ray_grads_struct(tviews),
-                              loss_prm, ray_grads_view(up, a, b), ray_loss[a:b], grads_struct(grads),
+                              loss_prm, ray_grads_view(up, a, b), ray_loss[a:b], grads,
                               self._ordered_struct(a, b)])
 
         outs, rep, grads = self._run(n_rays, len(gaussians), gdata, launch, with_grads=True)
         out = self._outputs_to_torch(outs, gaussians)
         out = TraceOutput(**{k: (v.detach() if isinstance(v, torch.Tensor) else v) for k, v in vars(out).items()})
         loss = to_torch(ray_loss, torch.device("cpu")).double().sum().to(gaussians.device)
-        gouts = self._grads_to_torch(grads, inputs)
+        gouts = self._grads_to_torch(inputs)
         pairs = [(t, gt) for t, gt in zip(inputs, gouts) if t.requires_grad]
         if pairs:
             torch.autograd.backward([p[0] for p in pairs], [p[1] for p in pairs])
@@ -354,7 +354,7 @@ class Tracer:
                           wp.empty((n_rays, h), dtype=wp.int32, device=self.device))
         while True:
             rep = ReplayArrays.allocate(n_rays, self.capacity, self.device)
-            grads = [allocate_grads(n_gaussians, self.device) for _ in stripes] if with_grads else None
+            grads = self._rows(n_gaussians).take() if with_grads else None
             if n_rays == 0 or n_gaussians == 0 or self.bvh.count == 0:
                 outs["transmittance"].fill_(1.0)
                 break
@@ -373,8 +373,6 @@ class Tracer:
                 break
             self.last_overflow_rays += n_over
             self._grow(most, n_over)
-        if grads is not None:
-            grads = sum_grads(grads)
         return outs, rep, grads
 
     def _grow(self, most: int, n_over: int | None) -> None:
@@ -406,7 +404,7 @@ class Tracer:
         n_rays = state["o"].shape[0]
         n = inputs[0].shape[0]
         stripes = thread_stripes(n_rays, self._threads)
-        grads = [allocate_grads(n, self.device) for _ in stripes]
+        grads = self._rows(n).take()
         if n_rays and n and self.bvh.count > 0:
             up = {k: to_warp(upstream[k], dt, self.device) for k, dt in RAY_GRAD_FIELDS.items()}
             saved_cap, self.capacity = self.capacity, state["capacity"]
@@ -417,36 +415,47 @@ class Tracer:
             def job(i, a, b):
                 wp.launch(kernels.backward_kernel, dim=b - a, device=self.device,
                           inputs=[rows(state["o"], a, b), rows(state["d"], a, b), gdata, prm, rep.view(a, b),
-                                  outputs_view(outs, a, b), ray_grads_view(up, a, b), grads_struct(grads[i])])
+                                  outputs_view(outs, a, b), ray_grads_view(up, a, b), grads[i]])
 
             with self.timer.section("tracer_backward"):
                 run_chunks(self._pool, [(lambda i=i, chunks=chunks: [job(i, a, b) for a, b in chunks])
                                         for i, chunks in enumerate(stripes)])
-        return self._grads_to_torch(sum_grads(grads), inputs)
+        return self._grads_to_torch(inputs)
 
-    def _grads_to_torch(self, grads: dict[str, wp.array], inputs) -> list[torch.Tensor]:
-        """Gradients wrt the activated values -> wrt the raw parameters (PARAM_SHAPES order);
-        the geometry part goes through the Warp chain kernel."""
+    def _rows(self, n: int) -> GradRows:
+        rows_ = self._grad_rows
+        if rows_ is None or not rows_.fits(n, self._threads, self.device):
+            rows_ = self._grad_rows = GradRows(n, self._threads, self.device)
+        return rows_
+
+    def _grads_to_torch(self, inputs) -> list[torch.Tensor]:
+        """The backward's per-thread rows (wrt the activated values) -> gradients wrt the raw parameters
+        (PARAM_SHAPES order), in one gather launch per CPU thread over its Gaussians (no sums in torch); the rows
+        are left zero for the next pass."""
         means, quats, log_scales, logits = inputs[:4]
         n = means.shape[0]
-        alloc = wp.empty if n else wp.zeros  # the chain kernel writes every element
-        g_quats = alloc(n, dtype=wp.vec4, device=self.device)
-        g_log_scales = alloc(n, dtype=wp.vec3, device=self.device)
-        g_logits = alloc(n, dtype=float, device=self.device)
+        tdev = torch_device_for(self.device)
+        dev = tdev or torch.device("cpu")
+        outs = [torch.empty((n, *PARAM_SHAPES[k]), dtype=torch.float32, device=dev) for k in PARAM_SHAPES]
         if n:
-            inputs_chain = [self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3),
-                            self._param_array(logits, float), grads["w2l"], grads["opacity"],
-                            g_quats, g_log_scales, g_logits]
-            # one launch per CPU thread over its rows (a CPU launch runs on one core; per Gaussian, no sums)
+            rows_ = self._rows(n)
+            dtypes = [wp.vec3, wp.vec4, wp.vec3, wp.float32, wp.vec3, wp.vec3, wp.float32, wp.vec3]
+            arrays = [wp.from_torch(t, dtype=dt, requires_grad=False) if tdev is not None
+                      else wp.empty(n, dtype=dt, device=self.device) for t, dt in zip(outs, dtypes)]
+            fixed = [n, self._threads]
+            inputs_gather = [self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3),
+                             self._param_array(logits, float), *(rows_.flat[k] for k in GRAD_FIELDS), *arrays]
+            # one launch per CPU thread over its Gaussians (a CPU launch runs on one core)
             parts = ray_chunks(n, self._threads) if n >= 4096 * self._threads else [(0, n)]
             with self.timer.section("tracer_backward"):
                 run_chunks(self._pool, [
-                    (lambda a=a, b=b: wp.launch(chain_kernel, dim=b - a, device=self.device,
-                                                inputs=[x[a:b] for x in inputs_chain]))
+                    (lambda a=a, b=b: wp.launch(gather_kernel, dim=b - a, device=self.device,
+                                                inputs=[*fixed, a, *inputs_gather]))
                     for a, b in parts])
-        raw = [grads["means"], g_quats, g_log_scales, g_logits, grads["diffuse"], grads["normal"],
-               grads["roughness"], grads["f0"]]
-        return [to_torch(g, like.device).reshape(like.shape).to(like.dtype) for g, like in zip(raw, inputs)]
+            rows_.dirty = False
+            if tdev is None:
+                outs = [to_torch(a, dev) for a in arrays]
+        return [g.reshape(like.shape).to(device=like.device, dtype=like.dtype) for g, like in zip(outs, inputs)]
 
     def _outputs_to_torch(self, outs: dict[str, wp.array], gaussians: Gaussians) -> TraceOutput:
         dev, dt = gaussians.device, gaussians.dtype
