@@ -4,6 +4,7 @@ split integrator reads at the first hit (layer routing, roughness, F0, principle
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,12 @@ import numpy as np
 from .spec import MaterialSpec, ObjectSpec, SynthSpec, TransformSpec
 from .textures import make_texture
 
-VARIANT = "llvm_ad_rgb"
+# Mitsuba's LLVM (CPU) backend; MITSUBA_VARIANT=cuda_ad_rgb renders the same integrator on a GPU (a machine
+# without libLLVM, e.g. a lent GPU: .ci/gpu-bench train); the noise differs, not the estimator
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+VARIANT = os.environ.get("MITSUBA_VARIANT", VARIANTS[0])
+if VARIANT not in VARIANTS:
+    raise ValueError(f"MITSUBA_VARIANT={VARIANT!r}: expected one of {', '.join(VARIANTS)}")
 
 # Layer routing of a material at the first vertex (see integrator.py).
 ROUTE_DIFFUSE = 0  # every first-vertex contribution is diffuse; specular exactly 0
