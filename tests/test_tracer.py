@@ -292,6 +292,21 @@ def test_scene_types_match_reference(kind, traversal):
     _assert_grads_close(gk, gr, seed)
 
 
+@pytest.mark.parametrize("kind", ["room", "deep", "dense_init", "overlap", "deep_inside"])
+def test_whole_first_window_from_inside_changes_no_output(kind):
+    """A ray starting inside the Gaussians' box takes all of itself as its first window (inside_whole_window);
+    only its cost may differ: every output and count is bit for bit that of windows grown from one box diagonal,
+    cameras inside (room, dense_init, and inside a random cloud) and outside (deep, overlap: the default window)."""
+    seed = fresh_seed()
+    gs, origins, dirs = scene_type("deep" if kind == "deep_inside" else kind, seed)
+    if kind == "deep_inside":
+        origins = torch.zeros_like(origins)  # the camera in the middle of the cloud
+    outs = [Tracer(TracerConfig(inside_whole_window=flag)).trace(origins, dirs, gs) for flag in (True, False)]
+    for name in OUTPUTS + ["hit_count", "blended_count"]:
+        assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind}: {name}"
+    assert outs[0].blended_count.float().mean() > 1.5, f"{kind}: scene too sparse to test blending"
+
+
 def test_ten_thousand_hits_on_one_ray_render_correctly():
     """No ceiling on hits per ray: 10,000 Gaussians on one line, all blended (threshold 0): the replay buffer
     grows to hold them (no error), and the result is the reference's."""

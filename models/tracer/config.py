@@ -32,6 +32,10 @@ class TracerConfig:
                              enum=["interval", "single", "kbuffer", "ordered"])
     window: float = setting(1.0, "interval traversal: first window length, in median Gaussian box diagonals (then "
                             "sized per ray from the optical depth seen so far)", exclusiveMinimum=0)
+    inside_whole_window: bool = setting(True, "interval traversal: a ray that starts inside the Gaussians' box "
+                                        "(a camera or reflection vertex in a room) takes all of itself as its "
+                                        "first window (the opaque cut ends it at the first surface) instead of "
+                                        "window; only the cost depends on it", runtime=True)
     replay_capacity: int = setting(64, "replay buffer slots per ray at start (the blended hits, kept for the "
                                    "backward, plus the window being sorted); grows when a ray needs more",
                                    minimum=2)

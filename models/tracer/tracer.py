@@ -283,7 +283,7 @@ class Tracer:
         c = self.config
         key = (gid, self.capacity, self.box_diagonal, self.scene_box_values, id(self.bvh.lowers), id(self.bvh.uppers),
                c.kernel_p, c.alpha_min, c.alpha_max, c.transmittance_threshold, c.t_min, c.k, c.world_aabb_only,
-               c.traversal, c.window)
+               c.traversal, c.window, c.inside_whole_window)
         if key == self._prm_key:
             return self._prm
         prm = TraceParams()
@@ -298,6 +298,7 @@ class Tracer:
         prm.obb_test = 0 if c.world_aabb_only else 1
         prm.traversal = TRAVERSALS.index(c.traversal)
         prm.window = c.window * self.box_diagonal
+        prm.inside_whole = 1 if c.inside_whole_window else 0
         prm.scene_lo, prm.scene_hi = self.scene_box
         prm.lowers, prm.uppers = self.bvh.lowers, self.bvh.uppers
         self._prm, self._prm_key = prm, key
