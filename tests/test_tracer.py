@@ -301,9 +301,16 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
     gs, origins, dirs = scene_type("deep" if kind == "deep_inside" else kind, seed)
     if kind == "deep_inside":
         origins = torch.zeros_like(origins)  # the camera in the middle of the cloud
-    outs = [Tracer(TracerConfig(inside_whole_window=flag)).trace(origins, dirs, gs) for flag in (True, False)]
+    tracers = [Tracer(TracerConfig(inside_whole_window=flag)) for flag in (True, False)]
+    outs = [t.trace(origins, dirs, gs) for t in tracers]
     for name in OUTPUTS + ["hit_count", "blended_count"]:
         assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind}: {name}"
+    # the setting acts on rays from inside the box only: a ray from outside examines exactly the same boxes
+    box = torch.tensor(tracers[0].scene_box_values).reshape(2, 3)
+    inside = ((origins >= box[0]) & (origins <= box[1])).all(dim=1)
+    assert torch.equal(outs[0].candidates[~inside], outs[1].candidates[~inside]), f"seed {seed}: {kind}"
+    if kind in ("room", "deep_inside"):  # and it does act there
+        assert inside.all() and not torch.equal(outs[0].candidates, outs[1].candidates), f"seed {seed}: {kind}"
     assert outs[0].blended_count.float().mean() > 1.5, f"{kind}: scene too sparse to test blending"
 
 

@@ -102,14 +102,11 @@ class GradRows:
     no pass clears (or allocates) 23 floats per Gaussian and thread, and nothing adds rows in torch."""
 
     def __init__(self, n: int, threads: int, device: str):
-        self.n, self.threads, self.device = n, threads, device
+        self.n = n
         self.flat = {k: wp.zeros(threads * n, dtype=dt, device=device) for k, dt in GRAD_FIELDS.items()}
         self.structs = [grads_struct({k: v[i * n:(i + 1) * n] for k, v in self.flat.items()})
                         for i in range(threads)]
         self.dirty = False  # handed to a launch and not gathered since (an error in between): clear before reuse
-
-    def fits(self, n: int, threads: int, device: str) -> bool:
-        return (self.n, self.threads, self.device) == (n, threads, device)
 
     def take(self) -> list:
         """The per-thread structs, all zero."""

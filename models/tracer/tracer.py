@@ -425,7 +425,7 @@ class Tracer:
 
     def _rows(self, n: int) -> GradRows:
         rows_ = self._grad_rows
-        if rows_ is None or not rows_.fits(n, self._threads, self.device):
+        if rows_ is None or rows_.n != n:  # (threads and device are the tracer's own)
             rows_ = self._grad_rows = GradRows(n, self._threads, self.device)
         return rows_
 
@@ -440,7 +440,7 @@ class Tracer:
         outs = [torch.empty((n, *PARAM_SHAPES[k]), dtype=torch.float32, device=dev) for k in PARAM_SHAPES]
         if n:
             rows_ = self._rows(n)
-            dtypes = [wp.vec3, wp.vec4, wp.vec3, wp.float32, wp.vec3, wp.vec3, wp.float32, wp.vec3]
+            dtypes = [{(): wp.float32, (3,): wp.vec3, (4,): wp.vec4}[shape] for shape in PARAM_SHAPES.values()]
             arrays = [wp.from_torch(t, dtype=dt, requires_grad=False) if tdev is not None
                       else wp.empty(n, dtype=dt, device=self.device) for t, dt in zip(outs, dtypes)]
             fixed = [n, self._threads]
