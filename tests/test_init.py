@@ -74,3 +74,34 @@ def test_cli_writes_ply(tmp_path):
     g = read_ply(tmp_path / "init/points.ply")
     assert len(g) > 50 and (tmp_path / "init/stage.json").is_file()
     assert init_main(["--capture", str(tmp_path / "nope"), "--out", str(tmp_path / "x")]) == 1
+
+
+def test_coarse_levels_fill_surfaces_seen_from_far_and_still_drop_lone_samples():
+    """Where a pixel's footprint is wider than the voxel (the plane's far, grazing parts) samples are alone in
+    their voxels: the reference recipe (coarse_levels 0) leaves holes up to 1.2 m across the seen plane (the
+    zoo's distant walls: 0.8 m); the coarse levels cover it up to the coarsest voxel's scale, and a lone stray
+    sample (a depth outlier 1 m off the plane) is still dropped at every level."""
+    from scipy.spatial import cKDTree
+
+    cap = plane_capture()
+    v = cap.views[0]
+    v.buffers["depth"][10, 12] *= 0.5  # one stray sample, far in front of the plane
+    stray = v.camera.origin + v.camera.ray_directions()[10, 12] * v.buffers["depth"][10, 12]
+    cfg = dict(resolution=40, voxel_fraction=1 / 100)
+    every, _ = dense_init(cap, InitConfig(**cfg, coarse_levels=0, min_samples=1))  # a Gaussian at each sample
+    seen = every.means.numpy()[np.abs(every.means.numpy()[:, 2]) < 1e-4]
+    g_ref, s_ref = dense_init(cap, InitConfig(**cfg, coarse_levels=0))
+    gap_ref = cKDTree(g_ref.means.numpy()).query(seen)[0]
+    g, s = dense_init(cap, InitConfig(**cfg))
+    means = g.means.numpy()
+    gap = cKDTree(means).query(seen)[0]
+    coarsest = 8 * s["voxel"]
+    assert s_ref["coarse"] == [] and gap_ref.max() > 4 * coarsest  # the recipe's holes
+    assert gap.max() < 1.25 * coarsest, (gap.max(), coarsest)
+    assert np.percentile(gap, 99) < 0.25 * np.percentile(gap_ref, 99)
+    assert len(g) == s["gaussians"] == len(g_ref) + sum(s["coarse"]) and len(s["coarse"]) == 3
+    # where the recipe's Gaussians cover the plane the levels add nothing (holes only)
+    near = cKDTree(g_ref.means.numpy()).query(means[len(g_ref):])[0]
+    assert near.min() > 1.5 * 2 * s["voxel"]
+    assert np.abs(means[:, 2]).max() < 1e-5  # every Gaussian on the plane: the stray sample made none
+    assert cKDTree(means).query(stray)[0] > 0.5
