@@ -41,6 +41,7 @@ from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import plane_fill_gaussians
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
+PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
 log = logging.getLogger("models.reconstruction")
 
 PARAM_LR = {  # Gaussians field -> LearningRates field
@@ -106,6 +107,7 @@ class Trainer:
         self.prior = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self.prior[len(self.prior) - n_prior:] = True
         self._prior_rows: torch.Tensor | None = None  # rows of ``prior`` (made when first needed), see _freeze_priors
+        self._prior_nbrs: torch.Tensor | None = None  # [P, 8] each prior Gaussian's nearest priors (_prior_smooth)
         # Gaussians the mirror fills placed (seen only in reflections): no buffer sees their material
         self.reflected = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self._reflected_rows: torch.Tensor | None = None
@@ -346,6 +348,8 @@ class Trainer:
                 terms[layer] = w * torch.where(m[:, None], err, 0.0).sum() / count
             else:
                 terms[layer] = w * err.mean() if err.numel() else pred.sum() * 0
+        if self.config.loss.prior_smooth > 0 and len(self._cached_rows()[0]):
+            terms["prior_smooth"] = self.config.loss.prior_smooth * self._prior_smooth()
         total = sum(terms.values())
         names = [*(f"loss_{k}" for k in terms), "loss"]
         values = [*terms.values(), total]
@@ -603,6 +607,32 @@ class Trainer:
         if "anchors" in state:
             self.anchors.load_state_dict(state["anchors"])
 
+    def _cached_rows(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows of ``prior`` and of ``reflected``, found again only after they change (_replace, load_state_dict:
+        no device read-back per step)."""
+        if self._prior_rows is None:
+            self._prior_rows = torch.nonzero(self.prior).reshape(-1)
+            self._reflected_rows = torch.nonzero(self.reflected).reshape(-1)
+        return self._prior_rows, self._reflected_rows
+
+    def _prior_smooth(self) -> torch.Tensor:
+        """Mean L1 between each prior Gaussian's diffuse colour and the mean of its 8 nearest priors' (plane-fill
+        Gaussians: their geometry is frozen, so the neighbours are found once; pruning never removes them and
+        appended Gaussians go after them, so the priors keep their order)."""
+        rows = self._cached_rows()[0]
+        if self._prior_nbrs is None or len(self._prior_nbrs) != len(rows):
+            from scipy.spatial import cKDTree
+
+            pos = self.params["means"].detach()[rows].double().cpu().numpy()
+            k = min(PRIOR_NEIGHBOURS + 1, len(rows))
+            _, idx = cKDTree(pos).query(pos, k=k)
+            self._prior_nbrs = torch.as_tensor(np.asarray(idx).reshape(len(rows), k)[:, 1:],
+                                               device=rows.device)
+        c = self.params["diffuse"][rows]
+        if self._prior_nbrs.shape[1] == 0:
+            return c.sum() * 0
+        return (c - c[self._prior_nbrs].mean(1)).abs().mean()
+
     def _freeze_priors(self) -> None:
         """The prior's Gaussians (plane_fill.py) keep their place, size and orientation on the plane: their geometry
         gradients are zeroed (Adam's moments stay 0, so they never move). Reflections alone pin down no depth:
@@ -614,9 +644,7 @@ class Trainer:
         F0 and roughness, and that fits a shiny Gaussian in the air as well as a matte one on the wall
         (zoo_mirror_only: mirror-stereo Gaussians in front of the urn became F0 0.45, roughness 0.26, 0.8 m
         across, and the test views looking at the urn saw reflections in the air)."""
-        if self._prior_rows is None:  # reset wherever ``prior`` changes (_replace, load_state_dict)
-            self._prior_rows = torch.nonzero(self.prior).reshape(-1)
-            self._reflected_rows = torch.nonzero(self.reflected).reshape(-1)
+        self._cached_rows()
         frozen = [(self._prior_rows, ("means", "quats", "log_scales"))]
         if self.config.fill_matte:
             frozen.append((self._reflected_rows, ("f0", "roughness")))
