@@ -82,8 +82,9 @@ class Trainer:
         self.peak = hdr.peak(float(final.max())) if final.numel() else 1.0
         # the far field is decided on what the cameras saw, not on the prior: the plane fill closes a room's box
         # where it can, and what lies outside that box (a wall never seen, behind the cameras) is the far field's
-        self.far_field = self._needs_far_field(init)
-        init, n_prior = self._plane_fill(init)
+        with_fill, n_prior = self._plane_fill(init)
+        self.far_field = self._needs_far_field(init, with_fill)
+        init = with_fill
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.far_field_added = False
@@ -179,7 +180,7 @@ class Trainer:
         fill = fill.to(init.device, init.dtype)
         return Gaussians(**{k: torch.cat([v.detach(), getattr(fill, k)]) for k, v in init.params().items()}), len(fill)
 
-    def _needs_far_field(self, init: Gaussians) -> bool:
+    def _needs_far_field(self, init: Gaussians, closed: Gaussians | None = None) -> bool:
         mode = self.config.far_field
         if mode not in ("auto", "on", "off"):
             raise ValueError(f"far_field must be auto, on or off, got {mode!r}")
@@ -207,10 +208,33 @@ class Trainer:
                 f"far field: on, {escaped:.1%} of mirror-like reflection rays leave the initial geometry"
             )
             return True
+        # a test view may turn where no training view looked: a ceiling no camera saw (no plane to fill) is a hole
+        # the far field's shell must close, or it renders black (zoo_thin: the denser init left 0.2 % of the
+        # reflections escaping, the far field went off and the test view looking up saw 49 % of nothing)
+        around = self._escaping_views(init if closed is None else closed)
+        if around > self.config.far_field_escape:
+            self.decisions.append(
+                f"far field: on, {around:.1%} of rays from the training cameras in random directions leave the "
+                f"initial geometry and the plane fill ({escaped:.1%} of mirror-like reflection rays)"
+            )
+            return True
         self.decisions.append(
-            f"far field: off, closed scene ({escaped:.1%} of mirror-like reflection rays escape the initial geometry)"
+            f"far field: off, closed scene ({escaped:.1%} of mirror-like reflection rays escape the initial "
+            f"geometry, {around:.1%} of rays from the training cameras in random directions escape it and the "
+            f"plane fill)"
         )
         return False
+
+    @torch.no_grad()
+    def _escaping_views(self, scene: Gaussians, rays_per_camera: int = 1024) -> float:
+        """Fraction of rays from the training cameras' centres in uniformly random directions that hit none of
+        ``scene``'s Gaussians: where a view turned anywhere from where the cameras stand looks into nothing."""
+        g = torch.Generator().manual_seed(self.config.seed)
+        cams = torch.tensor(np.stack([v.camera.origin for v in self.rays.views]), dtype=torch.float32)
+        dirs = torch.nn.functional.normalize(torch.randn(len(cams) * rays_per_camera, 3, generator=g), dim=1)
+        origins = cams.repeat_interleave(rays_per_camera, 0)
+        out = self.backend.trace(origins.to(scene.means.device), dirs.to(scene.means.device), scene)
+        return float((out.hit_count.reshape(-1) == 0).float().mean())
 
     @torch.no_grad()
     def _escaping_reflections(self, init: Gaussians, max_rays: int = 16384) -> float | None:
