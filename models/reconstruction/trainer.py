@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from models.capture import Capture
 from models.capture.layers import GBUFFER, RADIANCE
@@ -180,7 +181,8 @@ class Trainer:
         fill = fill.to(init.device, init.dtype)
         return Gaussians(**{k: torch.cat([v.detach(), getattr(fill, k)]) for k, v in init.params().items()}), len(fill)
 
-    def _needs_far_field(self, init: Gaussians, closed: Gaussians | None = None) -> bool:
+    def _needs_far_field(self, init: Gaussians, closed: Gaussians) -> bool:
+        """``init``: what the cameras saw (the mirror test); ``closed``: it with the plane fill (the view test)."""
         mode = self.config.far_field
         if mode not in ("auto", "on", "off"):
             raise ValueError(f"far_field must be auto, on or off, got {mode!r}")
@@ -211,7 +213,7 @@ class Trainer:
         # a test view may turn where no training view looked: a ceiling no camera saw (no plane to fill) is a hole
         # the far field's shell must close, or it renders black (zoo_thin: the denser init left 0.2 % of the
         # reflections escaping, the far field went off and the test view looking up saw 49 % of nothing)
-        around = self._escaping_views(init if closed is None else closed)
+        around = self._escaping_views(closed)
         if around > self.config.far_field_escape:
             self.decisions.append(
                 f"far field: on, {around:.1%} of rays from the training cameras in random directions leave the "
@@ -645,8 +647,6 @@ class Trainer:
         appended Gaussians go after them, so the priors keep their order)."""
         rows = self._cached_rows()[0]
         if self._prior_nbrs is None or len(self._prior_nbrs) != len(rows):
-            from scipy.spatial import cKDTree
-
             pos = self.params["means"].detach()[rows].double().cpu().numpy()
             k = min(PRIOR_NEIGHBOURS + 1, len(rows))
             _, idx = cKDTree(pos).query(pos, k=k)
