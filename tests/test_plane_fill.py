@@ -12,7 +12,7 @@ import torch
 from models.capture import View
 from models.capture.camera import Camera
 from models.reconstruction.data import RaySet
-from models.reconstruction.plane_fill import bounding, find_planes, pixel_points, plane_fill_gaussians
+from models.reconstruction.plane_fill import bounding, extend_plane_fill, find_planes, pixel_points, plane_fill_gaussians
 from models.reconstruction.reflection_fill import seen_empty
 
 FLOOR, CEILING, LEFT, METAL, BACK, FRONT, TABLE = (0.6, 0.5, 0.4), (0.8, 0.8, 0.8), (0.3, 0.6, 0.3), \
@@ -214,3 +214,39 @@ def test_a_light_on_a_wall_does_not_give_its_radiance_to_the_walls_unseen_part()
     assert left.sum() > 100
     np.testing.assert_allclose(g.diffuse.numpy()[left].mean(0), LEFT, atol=0.02)
     assert float(g.diffuse.numpy()[left].max()) < 1.0
+
+
+def test_what_the_mirrors_show_behind_the_cameras_carries_the_fill_there():
+    """The first fill's box ends at the cameras (z = 1): the floor, walls and ceiling behind them stay open, though
+    a wall mirror shows them (zoo_mirror_only: a test view turning round looked through the floor). Given points
+    placed from the mirrors' reflections (here: on the front wall z = 2, as the mirror stereo places them),
+    ``extend_plane_fill`` covers the planes up to them, without a gap at the first box's edge, without doubling
+    the first fill, past them nothing; with the planes' own materials. Points inside the first box add nothing."""
+    from scipy.spatial import cKDTree
+
+    rays = _rays()
+    first, stats = plane_fill_gaussians(rays, count=100000)
+    room, h = stats["room"], stats["spacing"]
+    p0 = first.means.numpy().astype(float)
+    assert p0[:, 2].max() < 1.0 + 3 * room.tol  # the defect: nothing behind the cameras
+    gx, gy = np.meshgrid(np.linspace(-1.9, 1.9, 40), np.linspace(0.1, 2.4, 25))
+    wall = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.0)], 1)
+    inside, st = extend_plane_fill(room, rays, wall * [1, 1, 0.2])  # (z 0.4: within the first box)
+    assert inside is None and st["grown"] == "nothing"
+    more, st = extend_plane_fill(room, rays, wall)
+    assert more is not None and st["added"] == len(more) and "z" in st["grown"]
+    p, n = more.means.numpy().astype(float), more.normals.numpy().astype(float)
+    assert p[:, 2].min() > 1.0 and p[:, 2].max() < 2.0 + 2 * room.tol + h  # only the grown part, up to the points
+    assert not seen_empty(more.means, rays.views).any()
+    tol = 0.06
+    floor, metal = _on(p, n, 1, 0.0, 1, tol), _on(p, n, 0, 2.0, -1, tol)
+    floor0 = p0[_on(p0, first.normals.numpy(), 1, 0.0, 1, tol)]
+    assert cKDTree(floor0).query(p[floor])[0].min() > 0.5 * h  # no doubling at the first box's edge
+    assert floor.sum() > 500 and metal.sum() > 100 and (_on(p, n, 1, 2.5, -1, tol).sum() > 500)
+    np.testing.assert_allclose(more.diffuse.numpy()[floor].mean(0), FLOOR, atol=0.02)
+    np.testing.assert_allclose(more.f0.numpy()[metal], 0.9, atol=0.01)
+    # the floor from under the cameras to the front wall is covered by one fill or the other, with no hole
+    both = np.concatenate([floor0, p[floor]])
+    fx, fz = np.meshgrid(np.linspace(-1.9, 1.9, 60), np.linspace(0.5, 1.95, 30))
+    probe = np.stack([fx.ravel(), np.zeros(fx.size), fz.ravel()], 1)
+    assert cKDTree(both).query(probe)[0].max() < 1.2 * h

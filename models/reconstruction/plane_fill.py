@@ -26,12 +26,19 @@ the training views' buffers and covers their unseen parts.
    head-on, up to 37 %, and a test view looking at an unseen wall saw the far field shine through it; a wall
    above a window took the window's radiance, 10x the wall's: zoo_lshape ``test_002``).
 
-The trainer adds them before warm-up and never prunes them for want of blending weight (no training view may
-see them: what nothing observes is the prior's to say); training changes them where reflections see them.
+6. Beyond the cameras (``extend_plane_fill``): the box of step 3 ends at the cameras, but a wall mirror shows the
+   half of the room behind them. When the mirror stereo has placed what the mirrors show (end of warm-up), the
+   box grows to hold those points and the bounding planes are filled in the grown part too (zoo_mirror_only:
+   the floor behind the cameras, which a test view turning round looks at).
+
+The trainer adds them before warm-up (step 6's at its end) and never prunes them for want of blending weight (no
+training view may see them: what nothing observes is the prior's to say); where reflections see them, training
+changes their colour and material, never their place or size.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -177,14 +184,79 @@ def _surfels(pos: np.ndarray, normal: np.ndarray, h: float, opacity: float, src:
     )
 
 
+@dataclasses.dataclass
+class Room:
+    """What ``plane_fill_gaussians`` found (steps 1-3), kept so that a later fill can reach further
+    (``extend_plane_fill``): the seen pixel points (``src``), the bounding planes [(normal, d, inliers)], the box
+    the fill covered (``lo``, ``hi``), the plane tolerance and the grid spacing it used."""
+    src: dict
+    bound: list
+    lo: np.ndarray
+    hi: np.ndarray
+    tol: float
+    h: float
+    size: float
+
+
+def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray,
+          done: tuple[np.ndarray, np.ndarray] | None, dtype) -> tuple[Gaussians | None, dict]:
+    """Steps 3-5 inside the box [lo, hi]: one Gaussian per unseen grid point of each bounding plane, farther than
+    1.5 h from every ``occupied`` point, outside the box ``done`` (a fill already covered it), up to ``count``
+    (the grid coarsens from ``room.h`` to fit). Sets ``room.h`` to the spacing used."""
+    stats = {"unseen": 0, "added": 0}
+    tol, h, pts, src = room.tol, room.h, room.src["points"], room.src
+    tree = cKDTree(occupied)
+    for _ in range(4):  # coarsen the grid until the unseen points fit the budget
+        cand, owner = [], []
+        for i, (n, d, _) in enumerate(room.bound):
+            g = _grid(n, d, lo - tol, hi + tol, h)
+            inside = np.ones(len(g), dtype=bool)
+            for j, (n2, d2, _) in enumerate(room.bound):
+                if j != i:
+                    inside &= g @ n2 - d2 > -tol
+            if done is not None:
+                inside &= ~((g >= done[0] - tol) & (g <= done[1] + tol)).all(1)
+            g = g[inside]
+            g = g[tree.query(g, k=1)[0] > 1.5 * h] if len(g) else g
+            cand.append(g)
+            owner.append(np.full(len(g), i))
+        cand, owner = np.concatenate(cand), np.concatenate(owner)
+        if len(cand):
+            keep = ~seen_empty(torch.from_numpy(cand), rays.views).numpy()
+            cand, owner = cand[keep], owner[keep]
+        if len(cand) <= count:
+            break
+        h *= math.sqrt(len(cand) / count) * 1.05
+    cand, owner = cand[:count], owner[:count]
+    room.h = h
+    stats["unseen"] = int(len(cand))
+    if not len(cand):
+        return None, stats
+    parts = []
+    for i, (n, d, inl) in enumerate(room.bound):
+        sel = owner == i
+        if not sel.any():
+            continue
+        mat = inl[~src["emitting"][inl]]  # the plane's material: its points that are not light sources
+        mat = mat if len(mat) else inl
+        k = min(16, len(mat))
+        _, nearest = cKDTree(pts[mat]).query(cand[sel], k=k)
+        nearest = mat[np.asarray(nearest).reshape(int(sel.sum()), k)]
+        parts.append(_surfels(cand[sel], n, h, opacity, src, nearest, dtype))
+    fill = Gaussians(**{k: torch.cat([getattr(p, k) for p in parts]) for k in parts[0].params()})
+    stats["added"] = len(fill)
+    return fill, stats
+
+
 @torch.no_grad()
 def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.9, tol_fraction: float = 0.01,
                          min_points: int = 100, seed: int = 0,
                          dtype=torch.float32) -> tuple[Gaussians | None, dict]:
     """Up to ``count`` Gaussians on the unseen parts of the room's bounding planes (module docstring), from the
-    training rays (a ``RaySet`` with depth and normal targets). Returns (Gaussians or None, statistics)."""
+    training rays (a ``RaySet`` with depth and normal targets). Returns (Gaussians or None, statistics);
+    ``stats["room"]`` is the ``Room`` found (None without buffers or planes), for ``extend_plane_fill``."""
     stats = {"planes": 0, "bounding": 0, "unseen": 0, "added": 0, "spacing": 0.0, "spacing_fraction": 0.0,
-             "notes": []}
+             "notes": [], "room": None}
     src = pixel_points(rays, max_points=400000, seed=seed)
     if src is None or len(src["points"]) < 100:
         stats["notes"] = ["plane fill: off, the capture has no depth and normal buffers on enough pixels"]
@@ -202,42 +274,36 @@ def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.9, tol_fra
         return None, stats
     for _, _, inl in bound:  # a plane the cameras barely see (a ceiling) lies outside the points' quantile box
         lo, hi = np.minimum(lo, pts[inl].min(0)), np.maximum(hi, pts[inl].max(0))
-    tree = cKDTree(pts)
-    h = size / 100.0
-    for _ in range(4):  # coarsen the grid until the unseen points fit the budget
-        cand, owner = [], []
-        for i, (n, d, _) in enumerate(bound):
-            g = _grid(n, d, lo - tol, hi + tol, h)
-            inside = np.ones(len(g), dtype=bool)
-            for j, (n2, d2, _) in enumerate(bound):
-                if j != i:
-                    inside &= g @ n2 - d2 > -tol
-            g = g[inside]
-            g = g[tree.query(g, k=1)[0] > 1.5 * h] if len(g) else g
-            cand.append(g)
-            owner.append(np.full(len(g), i))
-        cand, owner = np.concatenate(cand), np.concatenate(owner)
-        if len(cand):
-            keep = ~seen_empty(torch.from_numpy(cand), rays.views).numpy()
-            cand, owner = cand[keep], owner[keep]
-        if len(cand) <= count:
-            break
-        h *= math.sqrt(len(cand) / count) * 1.05
-    cand, owner = cand[:count], owner[:count]
-    stats["unseen"], stats["spacing"], stats["spacing_fraction"] = int(len(cand)), float(h), float(h / size)
-    if not len(cand):
+    room = Room(src=src, bound=bound, lo=lo, hi=hi, tol=tol, h=size / 100.0, size=size)
+    stats["room"] = room
+    fill, more = _fill(room, rays, count, opacity, lo, hi, pts, None, dtype)
+    stats.update(more, spacing=float(room.h), spacing_fraction=float(room.h / size))
+    return fill, stats
+
+
+@torch.no_grad()
+def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20000, opacity: float = 0.9,
+                      dtype=torch.float32) -> tuple[Gaussians | None, dict]:
+    """The plane fill carried out to where the room is known to reach beyond the first fill's box: ``seen`` [M, 3]
+    are points placed from what the cameras see only in mirrors (``mirror_stereo``: the half of a room behind
+    cameras that face a wall mirror). The first box holds the seen pixels and the cameras, so it ends at the
+    cameras; the floor, walls and ceiling behind them, shown only by the mirror, stayed open (zoo_mirror_only:
+    a test view turning round looked through the floor). Here the box grows to the 0.5-99.5 % box of ``seen``
+    and the bounding planes are filled in the grown part alone (same spacing, or coarser to fit ``count``),
+    away from the seen pixels and from ``seen``. Returns (Gaussians or None, statistics)."""
+    stats = {"unseen": 0, "added": 0, "grown": "nothing", "notes": []}
+    if room is None or seen is None or len(seen) < 10:
         return None, stats
-    parts = []
-    for i, (n, d, inl) in enumerate(bound):
-        sel = owner == i
-        if not sel.any():
-            continue
-        mat = inl[~src["emitting"][inl]]  # the plane's material: its points that are not light sources
-        mat = mat if len(mat) else inl
-        k = min(16, len(mat))
-        _, nearest = cKDTree(pts[mat]).query(cand[sel], k=k)
-        nearest = mat[np.asarray(nearest).reshape(int(sel.sum()), k)]
-        parts.append(_surfels(cand[sel], n, h, opacity, src, nearest, dtype))
-    fill = Gaussians(**{k: torch.cat([getattr(p, k) for p in parts]) for k in parts[0].params()})
-    stats["added"] = len(fill)
+    seen = np.asarray(seen, dtype=np.float64)
+    q_lo, q_hi = np.quantile(seen, [0.005, 0.995], axis=0)
+    lo, hi = np.minimum(room.lo, q_lo), np.maximum(room.hi, q_hi)
+    grown = [f"{'xyz'[a]} {room.lo[a]:.2f} -> {lo[a]:.2f}" for a in range(3) if lo[a] < room.lo[a] - room.tol] + \
+            [f"{'xyz'[a]} {room.hi[a]:.2f} -> {hi[a]:.2f}" for a in range(3) if hi[a] > room.hi[a] + room.tol]
+    if not grown:
+        return None, stats
+    stats["grown"] = ", ".join(grown)
+    fill, more = _fill(room, rays, count, opacity, lo, hi, np.concatenate([room.src["points"], seen]),
+                       (room.lo, room.hi), dtype)
+    stats.update(more)
+    room.lo, room.hi = lo, hi
     return fill, stats

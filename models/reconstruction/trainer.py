@@ -39,7 +39,7 @@ from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
-from .plane_fill import plane_fill_gaussians
+from .plane_fill import extend_plane_fill, plane_fill_gaussians
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
@@ -167,9 +167,11 @@ class Trainer:
 
     def _plane_fill(self, init: Gaussians) -> tuple[Gaussians, int]:
         """``init`` with the plane fill's Gaussians appended (``plane_fill_count`` > 0), and their count."""
+        self._room = None
         if self.config.plane_fill_count <= 0:
             return init, 0
         fill, stats = plane_fill_gaussians(self.rays, self.config.plane_fill_count, seed=self.config.seed)
+        self._room = stats["room"]  # the planes and box found, for the fill behind the cameras (_extend_plane_fill)
         message = (f"plane fill: {stats['added']} Gaussians on the unseen parts of {stats['bounding']} planes that "
                    f"bound the room (of {stats['planes']} planes in the buffers; grid spacing "
                    f"{stats['spacing_fraction']:.4f} of the room's size)")
@@ -278,16 +280,18 @@ class Trainer:
         return self.extent * math.exp((1 - t) * math.log(lr.position_init) + t * math.log(lr.position_final))
 
     def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None,
-                 anchored: bool = False) -> None:
+                 anchored: bool = False, prior: bool = False) -> None:
         """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
-        now, see anchors.py), keeping Adam's state and the anchors aligned."""
+        now, see anchors.py; ``prior``: a prior's, see ``self.prior``), keeping Adam's state and the anchors
+        aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
             self.reflected = self.reflected[keep.to(self.reflected.device)]
             self._prior_rows = self._reflected_rows = None
         if extra is not None:
-            self.prior = torch.cat([self.prior, torch.zeros(len(extra), dtype=torch.bool, device=self.prior.device)])
+            self.prior = torch.cat([self.prior, torch.full((len(extra),), prior, dtype=torch.bool,
+                                                           device=self.prior.device)])
             self.reflected = torch.cat([self.reflected, torch.full((len(extra),), anchored, dtype=torch.bool,
                                                                    device=self.reflected.device)])
             self._prior_rows = self._reflected_rows = None
@@ -402,11 +406,13 @@ class Trainer:
             metrics[f"psnr_{k}_tonemapped"] = mse_to_psnr(host[f"mse_{k}_tonemapped"])
         return total, metrics, read[len(names):]
 
-    def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False) -> None:
-        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py), log ``message % stats`` and keep it
-        among the decisions (with each of ``stats["notes"]``: what a fill could not decide well)."""
+    def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False,
+                  prior: bool = False) -> None:
+        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``prior``: a prior's, never pruned
+        for want of weight, geometry frozen), log ``message % stats`` and keep it among the decisions (with each
+        of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
-            self._replace(extra=fill, anchored=anchored)
+            self._replace(extra=fill, anchored=anchored, prior=prior)
         depth, spread = self.config.fill_anchor, max(self.config.fill_spread, self.config.fill_anchor)
         if fill is not None and anchored and depth > 0:
             message += (f", anchored (surfels facing the views: along that direction within {depth:g}x their "
@@ -439,9 +445,11 @@ class Trainer:
                                                          cfg.reflection_fill_count, seed=cfg.seed),
                               "%(added)d Gaussians (%(unseen)d candidates unseen by the cameras) along "
                               "%(open_rays)d open mirror reflections (of %(mirror_rays)d mirror rays)", True))
+            stereo = None
             if cfg.mirror_stereo_count > 0:
-                fills.append((*mirror_stereo_gaussians(self.rays, self.backend.trace, scene,
-                                                       cfg.mirror_stereo_count, seed=cfg.seed),
+                stereo = mirror_stereo_gaussians(self.rays, self.backend.trace, scene, cfg.mirror_stereo_count,
+                                                 seed=cfg.seed)
+                fills.append((*stereo,
                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, "
@@ -455,6 +463,12 @@ class Trainer:
                      "%s .. %s)", self.step, len(ff), np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist())
             for fill in fills:
                 self._add_fill(*fill)
+            if self._room is not None and stereo is not None and stereo[0] is not None:
+                # the room's planes behind the cameras, where the mirrors show it reaches (plane_fill.py step 6)
+                seen = stereo[0].means.detach().double().cpu().numpy()
+                self._add_fill(*extend_plane_fill(self._room, self.rays, seen, cfg.plane_fill_count),
+                               "%(added)d plane-fill Gaussians where the mirrors show the room reaching past the "
+                               "first fill's box (grown: %(grown)s)", prior=True)
             if cfg.highlight_fill:
                 self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
                                "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
