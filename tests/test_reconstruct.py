@@ -445,3 +445,27 @@ def test_far_field_rays_from_the_cameras_in_random_directions_find_holes(demo):
     keep = (box.means[:, 1] - float(centre[1])) < 0.9 * half  # no ceiling
     open_top = Gaussians(**{k: v[keep] for k, v in box.params().items()})
     assert 0.1 < trainer._escaping_views(open_top) < 0.3  # the top face: ~1/6 of the directions from the middle
+
+
+def test_the_plane_fill_reaches_where_the_mirror_shows_the_room_behind_the_cameras(book):
+    """mirror_book's cameras face the mirror: the first plane fill's box ends at them, and the back of the room is
+    seen only in the mirror. When the mirror stereo has placed what the mirror shows (end of warm-up), the fill is
+    carried there (plane_fill.py step 6): appended as priors (never pruned, geometry frozen), outside the first
+    box and behind the cameras, logged among the decisions."""
+    cfg = dict(SMALL, warmup=0, plane_fill_count=4000, highlight_fill=False)
+    trainer = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
+    first = int(trainer.prior.sum())
+    lo, hi, tol = trainer._room.lo.copy(), trainer._room.hi.copy(), trainer._room.tol
+    assert first > 0 and trainer.far_field
+    trainer.train_step()
+    grown = [d for d in trainer.decisions if "plane-fill Gaussians where the mirrors show" in d]
+    assert len(grown) == 1, trainer.decisions
+    added = int(trainer.prior.sum()) - first
+    assert added > 100 and f"added {added} plane-fill" in grown[0]
+    assert trainer.prior[-added:].all()  # appended last (nothing after the extension in this run)
+    new = trainer.params["means"][-added:].detach().double().numpy()
+    assert not ((new >= lo - tol) & (new <= hi + tol)).all(1).any()
+    cams = np.stack([v.camera.origin for v in trainer.rays.views])
+    forward = -np.mean([v.camera.c2w[:3, 2] for v in trainer.rays.views], axis=0)
+    assert np.median((new - cams.mean(0)) @ forward) < 0  # behind the cameras
+
