@@ -12,6 +12,7 @@ from stages.config import load_config
 from models.initialisation import InitConfig, dense_init
 from models.reconstruction import ReconstructConfig, Trainer, train
 from models.reconstruction.data import build_rayset
+from models.gaussians import Gaussians
 from models.metrics import psnr
 from models.reconstruction.trainer import REFERENCE_HEIGHT
 from models.synth import render_capture
@@ -469,3 +470,39 @@ def test_the_plane_fill_reaches_where_the_mirror_shows_the_room_behind_the_camer
     forward = -np.mean([v.camera.c2w[:3, 2] for v in trainer.rays.views], axis=0)
     assert np.median((new - cams.mean(0)) @ forward) < 0  # behind the cameras
 
+
+
+def test_the_far_field_is_left_out_where_no_camera_sees_past_the_room(book):
+    """``far_field_hidden``: far-field Gaussians that no training camera sees past the captured room are not added
+    (behind a closed wall they train on reflections slipping through it and show through any thin spot:
+    zoo_lshape). With mirror_book's Gaussians opaque (as after warm-up), those behind the seen walls are left out
+    and those past the room's open side (behind the cameras, where no view looks) stay; 0 keeps every one."""
+    added, first = {}, {}
+    for hidden in (0.05, 0.0):
+        cfg = dict(SMALL, warmup=0, mirror_stereo_count=0, highlight_fill=False, plane_fill_count=20000,
+                   far_field_hidden=hidden)
+        trainer = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
+        n = len(trainer.params["means"])
+        with torch.no_grad():
+            trainer.params["opacity_logits"][:] = 6.0
+        room = Gaussians(**{k: v.detach().clone() for k, v in trainer.params.items()})
+        trainer.train_step()
+        assert trainer.far_field_added
+        added[hidden], first[hidden] = trainer.params["means"][n:].detach().clone(), room
+    drawn, kept = added[0.0], added[0.05]
+    assert 100 < len(kept) < 0.8 * len(drawn)
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(drawn.numpy()).query(kept.numpy())[0].max() < 1e-6  # a subset of the same draw
+    cams = np.stack([v.camera.origin for v in book[0].split("train")])
+    forward = -np.mean([v.camera.c2w[:3, 2] for v in book[0].split("train")], axis=0)
+    behind = lambda p: float(((p.double().numpy() - cams.mean(0)) @ forward < 0).mean())  # noqa: E731
+    assert behind(kept) > behind(drawn) + 0.1
+    # those left out: every camera's segment to them is (nearly) blocked, traced here one camera at a time
+    left = drawn[torch.from_numpy(cKDTree(kept.numpy()).query(drawn.numpy())[0] > 1e-6)][:300]
+    t = tracer()
+    t.update(first[0.05])
+    for c in cams:
+        o = torch.tensor(c, dtype=torch.float32).expand(len(left), 3).contiguous()
+        d = torch.nn.functional.normalize(left - o, dim=-1)
+        assert float(t.trace(o, d, first[0.05]).transmittance.max()) < 0.05

@@ -92,6 +92,13 @@ class ReconstructConfig:
     far_field: str = setting("auto", "auto (only if reflections can see past the capture) | on | off",
                              enum=["auto", "on", "off"])
     far_field_count: int = setting(75000, "far-field Gaussians added at the end of warm-up", minimum=0)
+    far_field_hidden: float = setting(0.05, "far-field Gaussians that no training camera sees past the captured room "
+                                      "(the warmed-up scene and the fills let less than this through on the "
+                                      "segment from every camera to them) are not added: behind a closed wall "
+                                      "they train on reflections that slip through it and show through any thin "
+                                      "spot (zoo_lshape test_002: one of radiance 8.5 behind the wall round the "
+                                      "window made 66 % of the view's bright error); 0 = keep all",
+                                      minimum=0, maximum=1)
     far_field_escape: float = setting(0.01, "auto: on when more mirror-like reflections than this miss the init",
                                       minimum=0, maximum=1)
     reflection_fill_count: int = setting(0, "with the far field: Gaussians along open mirror reflections (0 = off)",

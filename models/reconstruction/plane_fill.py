@@ -290,7 +290,8 @@ def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20
     cameras; the floor, walls and ceiling behind them, shown only by the mirror, stayed open (zoo_mirror_only:
     a test view turning round looked through the floor). Here the box grows to the 0.5-99.5 % box of ``seen``
     and the bounding planes are filled in the grown part alone (same spacing, or coarser to fit ``count``),
-    away from the seen pixels and from ``seen``. Returns (Gaussians or None, statistics)."""
+    away from the seen pixels and from ``seen``; ``room``'s box becomes the grown one (a second call fills only
+    beyond it). Returns (Gaussians or None, statistics; ``grown``: the box's sides that moved, or "nothing")."""
     stats = {"unseen": 0, "added": 0, "grown": "nothing", "notes": []}
     if room is None or seen is None or len(seen) < 10:
         return None, stats

@@ -423,6 +423,28 @@ class Trainer:
             log.warning("step %d: %s", self.step, note)
             self.decisions.append(f"step {self.step}: {note}")
 
+    @torch.no_grad()
+    def _seen_from_cameras(self, scene: Gaussians, fills: list, points: torch.Tensor,
+                           chunk: int = 262144) -> torch.Tensor:
+        """[P] the most light that reaches each of ``points`` (outside the captured room) from any training camera
+        through ``scene`` and ``fills``: the transmittance of the segment camera -> point, max over the cameras."""
+        parts = [scene] + [f.to(scene.means.device, scene.means.dtype) for f in fills if f is not None and len(f)]
+        room = Gaussians(**{k: torch.cat([getattr(p, k).detach() for p in parts]) for k in scene.params()})
+        cams = torch.tensor(np.stack([v.camera.origin for v in self.rays.views]), dtype=points.dtype,
+                            device=room.means.device)
+        pts = points.to(room.means.device)
+        best = torch.zeros(len(pts), dtype=pts.dtype, device=pts.device)
+        if not len(pts):
+            return best
+        per = max(1, chunk // len(pts))
+        for i in range(0, len(cams), per):
+            c = cams[i:i + per]
+            origins = c.repeat_interleave(len(pts), 0)
+            dirs = torch.nn.functional.normalize(pts.repeat(len(c), 1) - origins, dim=-1)
+            t = self.backend.trace(origins, dirs, room).transmittance.reshape(len(c), len(pts))
+            best = torch.maximum(best, t.amax(0).to(best.dtype))
+        return best
+
     def _captured_box(self, scene: Gaussians, fills: list) -> tuple[np.ndarray, np.ndarray]:
         """Where the captured room is, which the far field must stay out of: the 0.5-99.5 % box of the scene's
         Gaussians and of the mirror fills' (what the cameras see only in mirrors, often the half of the room
@@ -455,20 +477,28 @@ class Trainer:
                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, "
                               "%(completed)d of them flat ones completed from their matched neighbours; %(inconsistent)d dropped: "
                               "no other mirror's depth agrees, or more see through them)", True))
+            grown = None
+            if self._room is not None and stereo is not None and stereo[0] is not None:
+                # the room's planes behind the cameras, where the mirrors show it reaches (plane_fill.py step 6)
+                shown = stereo[0].means.detach().double().cpu().numpy()
+                grown = extend_plane_fill(self._room, self.rays, shown, cfg.plane_fill_count)
             box = self._captured_box(scene, [f[0] for f in fills])
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
+            drawn = len(ff)
+            if cfg.far_field_hidden > 0:
+                room = [f[0] for f in fills] + ([grown[0]] if grown is not None else [])
+                visible = self._seen_from_cameras(scene, room, ff.means) >= cfg.far_field_hidden
+                ff = Gaussians(**{k: v[visible.to(v.device)] for k, v in ff.params().items()})
             self._replace(extra=ff)
             self.far_field_added = True
             log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box "
-                     "%s .. %s)", self.step, len(ff), np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist())
+                     "%s .. %s; %d drawn, those no training camera sees past the room left out)", self.step, len(ff),
+                     np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist(), drawn)
             for fill in fills:
                 self._add_fill(*fill)
-            if self._room is not None and stereo is not None and stereo[0] is not None:
-                # the room's planes behind the cameras, where the mirrors show it reaches (plane_fill.py step 6)
-                seen = stereo[0].means.detach().double().cpu().numpy()
-                self._add_fill(*extend_plane_fill(self._room, self.rays, seen, cfg.plane_fill_count),
-                               "%(added)d plane-fill Gaussians where the mirrors show the room reaching past the "
-                               "first fill's box (grown: %(grown)s)", prior=True)
+            if grown is not None:
+                self._add_fill(*grown, "%(added)d plane-fill Gaussians where the mirrors show the room reaching past "
+                               "the first fill's box (grown: %(grown)s)", prior=True)
             if cfg.highlight_fill:
                 self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
                                "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
