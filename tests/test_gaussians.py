@@ -104,3 +104,16 @@ def test_read_plain_3dgs_ply_uses_defaults_and_missing_file_is_valueerror(tmp_pa
 def test_empty_scene():
     g = Gaussians.empty()
     assert len(g) == 0 and g.world_to_local().shape == (0, 3, 3)
+
+
+def test_cat_keeps_order_and_subset_picks_rows():
+    a, b = _scene(5, seed=1), _scene(7, seed=2)
+    both = Gaussians.cat([a, Gaussians.empty(), b])
+    assert len(both) == 12
+    for k, v in both.params().items():
+        assert torch.equal(v[:5], getattr(a, k)) and torch.equal(v[5:], getattr(b, k))
+    mask = torch.zeros(12, dtype=torch.bool)
+    mask[[0, 6, 11]] = True
+    picked = both.subset(mask)
+    assert torch.equal(picked.means, both.means[[0, 6, 11]])
+    assert torch.equal(both.subset(torch.tensor([11, 0])).f0, both.f0[[11, 0]])

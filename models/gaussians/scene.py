@@ -81,5 +81,14 @@ class Gaussians:
         return world_to_local(self.quats, self.log_scales)
 
     @staticmethod
+    def cat(parts: "list[Gaussians]") -> "Gaussians":
+        """The Gaussians of ``parts`` (same device and dtype) one after the other, in order."""
+        return Gaussians(**{k: torch.cat([getattr(p, k) for p in parts]) for k in PARAM_SHAPES})
+
+    def subset(self, index: torch.Tensor) -> "Gaussians":
+        """The Gaussians at ``index`` ([N] bool mask or integer rows)."""
+        return Gaussians(**{k: v[index.to(v.device)] for k, v in self.params().items()})
+
+    @staticmethod
     def empty(device="cpu", dtype=torch.float32) -> "Gaussians":
         return Gaussians(**{k: torch.zeros((0, *s), device=device, dtype=dtype) for k, s in PARAM_SHAPES.items()})

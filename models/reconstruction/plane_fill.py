@@ -195,7 +195,6 @@ class Room:
     hi: np.ndarray
     tol: float
     h: float
-    size: float
 
 
 def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray,
@@ -243,7 +242,7 @@ def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.n
         _, nearest = cKDTree(pts[mat]).query(cand[sel], k=k)
         nearest = mat[np.asarray(nearest).reshape(int(sel.sum()), k)]
         parts.append(_surfels(cand[sel], n, h, opacity, src, nearest, dtype))
-    fill = Gaussians(**{k: torch.cat([getattr(p, k) for p in parts]) for k in parts[0].params()})
+    fill = Gaussians.cat(parts)
     stats["added"] = len(fill)
     return fill, stats
 
@@ -274,7 +273,7 @@ def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.9, tol_fra
         return None, stats
     for _, _, inl in bound:  # a plane the cameras barely see (a ceiling) lies outside the points' quantile box
         lo, hi = np.minimum(lo, pts[inl].min(0)), np.maximum(hi, pts[inl].max(0))
-    room = Room(src=src, bound=bound, lo=lo, hi=hi, tol=tol, h=size / 100.0, size=size)
+    room = Room(src=src, bound=bound, lo=lo, hi=hi, tol=tol, h=size / 100.0)
     stats["room"] = room
     fill, more = _fill(room, rays, count, opacity, lo, hi, pts, None, dtype)
     stats.update(more, spacing=float(room.h), spacing_fraction=float(room.h / size))

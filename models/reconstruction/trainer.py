@@ -171,7 +171,7 @@ class Trainer:
         if self.config.plane_fill_count <= 0:
             return init, 0
         fill, stats = plane_fill_gaussians(self.rays, self.config.plane_fill_count, seed=self.config.seed)
-        self._room = stats["room"]  # the planes and box found, for the fill behind the cameras (_extend_plane_fill)
+        self._room = stats["room"]  # the planes and box found, for the fill behind the cameras (extend_plane_fill)
         message = (f"plane fill: {stats['added']} Gaussians on the unseen parts of {stats['bounding']} planes that "
                    f"bound the room (of {stats['planes']} planes in the buffers; grid spacing "
                    f"{stats['spacing_fraction']:.4f} of the room's size)")
@@ -181,7 +181,7 @@ class Trainer:
         if fill is None:
             return init, 0
         fill = fill.to(init.device, init.dtype)
-        return Gaussians(**{k: torch.cat([v.detach(), getattr(fill, k)]) for k, v in init.params().items()}), len(fill)
+        return Gaussians.cat([init.to(), fill]), len(fill)
 
     def _needs_far_field(self, init: Gaussians, closed: Gaussians) -> bool:
         """``init``: what the cameras saw (the mirror test); ``closed``: it with the plane fill (the view test)."""
@@ -428,8 +428,7 @@ class Trainer:
                            chunk: int = 262144) -> torch.Tensor:
         """[P] the most light that reaches each of ``points`` (outside the captured room) from any training camera
         through ``scene`` and ``fills``: the transmittance of the segment camera -> point, max over the cameras."""
-        parts = [scene] + [f.to(scene.means.device, scene.means.dtype) for f in fills if f is not None and len(f)]
-        room = Gaussians(**{k: torch.cat([getattr(p, k).detach() for p in parts]) for k in scene.params()})
+        room = Gaussians.cat([scene.to()] + [f.to(scene.device, scene.dtype) for f in fills if f is not None])
         cams = torch.tensor(np.stack([v.camera.origin for v in self.rays.views]), dtype=points.dtype,
                             device=room.means.device)
         pts = points.to(room.means.device)
@@ -488,7 +487,7 @@ class Trainer:
             if cfg.far_field_hidden > 0:
                 room = [f[0] for f in fills] + ([grown[0]] if grown is not None else [])
                 visible = self._seen_from_cameras(scene, room, ff.means) >= cfg.far_field_hidden
-                ff = Gaussians(**{k: v[visible.to(v.device)] for k, v in ff.params().items()})
+                ff = ff.subset(visible)
             self._replace(extra=ff)
             self.far_field_added = True
             log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box "
