@@ -34,9 +34,11 @@ class TraceParams:
     obb_test: int             # 1: test the cut-off ellipsoid (|q| <= s) before the response
     traversal: int            # index into config.TRAVERSALS: 0 interval, 1 single, 2 kbuffer, 3 ordered
     window: float             # interval: first window length (world units; divided by |d| per ray)
-    inside_whole: int         # interval: 1 = a ray starting inside the scene box takes all of itself as first window
+    inside_whole: int         # interval: 1 = a ray starting inside the core box takes all of itself as first window
     scene_lo: wp.vec3         # interval: the scene box (union of the Gaussians' world bounds)
     scene_hi: wp.vec3
+    core_lo: wp.vec3          # interval: the core box (where most Gaussians' bounds lie; one outlier does not widen it)
+    core_hi: wp.vec3
     lowers: wp.array(dtype=wp.vec3)  # [N] the Gaussians' world bounds (the wp.Bvh's items)
     uppers: wp.array(dtype=wp.vec3)
 

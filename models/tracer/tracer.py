@@ -73,8 +73,8 @@ class Tracer:
             if self.config.traversal == "ordered" else None
         self._no_ordered = empty_ordered(self.device)
         self.capacity = self.config.replay_capacity
-        self.scene_box = (wp.vec3(0.0), wp.vec3(0.0))
-        self.scene_box_values = (0.0,) * 6  # the same as floats (part of the launch parameters' key)
+        self.scene_box = self.core_box = (wp.vec3(0.0), wp.vec3(0.0))
+        self.scene_box_values = (0.0,) * 12  # the scene and core boxes as floats (part of the launch parameters' key)
         self.scene_diagonal = 1.0
         self.box_diagonal = 1.0
         self._built_box_diagonal = 0.0  # box_diagonal at the last rebuild (BVH.moved_far)
@@ -149,16 +149,21 @@ class Tracer:
             lo, hi = lowers.min(0).values, uppers.max(0).values  # (faster than amin / amax over [N, 3] on a CPU)
             scene = (hi - lo).norm()
             box_diagonal = torch.where(box_diagonal.isnan(), scene.clamp_min(1e-6), box_diagonal)
-            values = torch.cat([lo, hi, box_diagonal.reshape(1), scene.reshape(1)]).tolist()
+            # the core box (where a ray starts "inside": interval traversal's first window), from the same sample:
+            # the union box above grows with any one large Gaussian, e.g. to hold a camera looking at a cloud
+            core_lo = torch.maximum(lowers[::stride].quantile(0.005, dim=0) - box_diagonal, lo)
+            core_hi = torch.minimum(uppers[::stride].quantile(0.995, dim=0) + box_diagonal, hi)
+            values = torch.cat([lo, hi, box_diagonal.reshape(1), scene.reshape(1), core_lo, core_hi]).tolist()
             if not all(math.isfinite(v) for v in values):  # (NaN propagates through min / max)
                 raise FloatingPointError("non-finite Gaussian bounds (NaN / Inf in means, quats or log_scales): "
                                          "the BVH traversal would not end")
             self.scene_box = (wp.vec3(*values[:3]), wp.vec3(*values[3:6]))
-            self.scene_box_values = tuple(values[:6])
+            self.core_box = (wp.vec3(*values[8:11]), wp.vec3(*values[11:14]))
+            self.scene_box_values = tuple(values[:6]) + tuple(values[8:14])
             self.box_diagonal, self.scene_diagonal = values[6], values[7]
         else:
-            self.scene_box = (wp.vec3(0.0), wp.vec3(0.0))
-            self.scene_box_values = (0.0,) * 6
+            self.scene_box = self.core_box = (wp.vec3(0.0), wp.vec3(0.0))
+            self.scene_box_values = (0.0,) * 12
             self.scene_diagonal = 1.0
 
     @staticmethod
@@ -300,6 +305,7 @@ class Tracer:
         prm.window = c.window * self.box_diagonal
         prm.inside_whole = 1 if c.inside_whole_window else 0
         prm.scene_lo, prm.scene_hi = self.scene_box
+        prm.core_lo, prm.core_hi = self.core_box
         prm.lowers, prm.uppers = self.bvh.lowers, self.bvh.uppers
         self._prm, self._prm_key = prm, key
         return prm
