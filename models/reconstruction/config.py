@@ -110,6 +110,10 @@ class ReconstructConfig:
                                     "warm-up, geometry frozen, never pruned for want of blending weight "
                                     "(plane_fill.py; zoo_lamps tonemapped final 26.0 -> 29.9); 0 = off (the paper)",
                                     minimum=0)
+    close_room: bool = setting(True, "with the far field and the plane fill: walls no training view looks at (behind "
+                               "the cameras, a ceiling above every frame), placed at the end of warm-up where sharp "
+                               "reflections, curved mirrors too, agree on them (room_closing.py); a side whose "
+                               "reflections agree best far away stays open")
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
     fill_anchor: float = setting(0.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
                                  "in mirrors) are surfels facing the views that placed them: along that direction "

@@ -207,7 +207,11 @@ def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.n
     tree = cKDTree(occupied)
     for _ in range(4):  # coarsen the grid until the unseen points fit the budget
         cand, owner = [], []
-        for i, (n, d, _) in enumerate(room.bound):
+        for i, (n, d, inl) in enumerate(room.bound):
+            if not len(inl):  # a wall placed by room_closing.py: no seen points to take a material from; it has its own
+                cand.append(np.zeros((0, 3)))
+                owner.append(np.zeros(0, dtype=np.int64))
+                continue
             g = _grid(n, d, lo - tol, hi + tol, h)
             inside = np.ones(len(g), dtype=bool)
             for j, (n2, d2, _) in enumerate(room.bound):

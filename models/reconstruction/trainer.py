@@ -40,6 +40,7 @@ from .far_field import far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import extend_plane_fill, plane_fill_gaussians
+from .room_closing import close_room, keep_inside
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
@@ -476,16 +477,28 @@ class Trainer:
                               "non-planar shiny regions ignored) agree in depth (%(kept)d pixels matched, "
                               "%(completed)d of them flat ones completed from their matched neighbours; %(inconsistent)d dropped: "
                               "no other mirror's depth agrees, or more see through them)", True))
-            grown = None
+            grown, walls, closed, shown = None, None, None, None
             if self._room is not None and stereo is not None and stereo[0] is not None:
                 # the room's planes behind the cameras, where the mirrors show it reaches (plane_fill.py step 6)
                 shown = stereo[0].means.detach().double().cpu().numpy()
                 grown = extend_plane_fill(self._room, self.rays, shown, cfg.plane_fill_count)
-            box = self._captured_box(scene, [f[0] for f in fills])
+            if self._room is not None and cfg.close_room:
+                # walls no view looks at, where sharp reflections (curved mirrors too) agree on them (room_closing.py),
+                # and the plane fill carried out to them
+                seen = Gaussians.cat([scene] + [f[0].to(scene.device, scene.dtype) for f in fills if f[0] is not None]
+                                     + ([grown[0]] if grown is not None and grown[0] is not None else []))
+                wall, points, stats = close_room(self._room, self.rays, self.backend.trace, seen,
+                                                 cfg.plane_fill_count, known=shown, seed=cfg.seed)
+                walls = (wall, stats, "%(added)d Gaussians on walls no training view looks at, placed where "
+                         "%(rays)d open sharp reflections agree on them: %(walls)s")
+                if points is not None:
+                    closed = extend_plane_fill(self._room, self.rays, points, cfg.plane_fill_count)
+            placed = [w[0] for w in (walls, grown, closed) if w is not None]
+            box = self._captured_box(scene, [f[0] for f in fills] + placed)
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
             drawn = len(ff)
             if cfg.far_field_hidden > 0:
-                room = [f[0] for f in fills] + ([grown[0]] if grown is not None else [])
+                room = [f[0] for f in fills] + placed
                 visible = self._seen_from_cameras(scene, room, ff.means) >= cfg.far_field_hidden
                 ff = ff.subset(visible)
             self._replace(extra=ff)
@@ -498,11 +511,17 @@ class Trainer:
             if grown is not None:
                 self._add_fill(*grown, "%(added)d plane-fill Gaussians where the mirrors show the room reaching past "
                                "the first fill's box (grown: %(grown)s)", prior=True)
+            if walls is not None:
+                self._add_fill(*walls, prior=True)
+            if closed is not None:
+                self._add_fill(*closed, "%(added)d plane-fill Gaussians reaching the walls placed (grown: %(grown)s)",
+                               prior=True)
             if cfg.highlight_fill:
-                self._add_fill(*highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed),
-                               "%(added)d emitting Gaussians where %(highlight_rays)d open highlight reflections "
-                               "(of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, searched "
-                               "%(box_scale_range)s)")
+                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed)
+                stats["inside"] = keep_inside(lights.means, self._room) if lights is not None else 0
+                self._add_fill(lights, stats, "%(added)d emitting Gaussians where %(highlight_rays)d open highlight "
+                               "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "
+                               "searched %(box_scale_range)s; %(inside)d moved in front of a wall placed)")
         if reflections and (self.path_length is None or self.step == (cfg.warmup + cfg.iterations) // 2):
             self._decide_path_length()
         for group in self.optimizer.param_groups:

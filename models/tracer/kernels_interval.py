@@ -15,8 +15,8 @@ consecutive windows partition t.
 Window length: a ray that starts inside the Gaussians' core box (a camera or a reflection vertex in a room:
 ``TraceParams.core_lo/hi``, the 0.5-99.5 % box of the Gaussians' bounds grown by one median box diagonal, so that
 one large Gaussian reaching past a camera outside a cloud does not count it inside: benchmark (d) 70 -> 190
-candidates per blended hit when the union box decided) takes all of itself as its first window (``TraceParams.inside_whole``, TracerConfig.inside_whole_window): it crosses
-empty space to a surface and the opaque cut (below) ends the window there; windows of one box diagonal, x4
+candidates per blended hit when the union box decided) takes all of itself as its first window
+(``TraceParams.inside_whole``, TracerConfig.inside_whole_window): it crosses empty space to a surface and the opaque cut (below) ends the window there; windows of one box diagonal, x4
 after each empty one, took 3.6-4.2 BVH queries per ray to cross the air of the demo room (forward -11 %
 measured on its training batches). A ray entering the box from outside (a camera looking at an object or a
 cloud) starts with ``TraceParams.window`` (world units: a multiple of the median Gaussian box diagonal, divided

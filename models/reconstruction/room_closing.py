@@ -1,0 +1,249 @@
+"""Closing the room where only curved mirrors see: walls the cameras never look at, placed by reflections.
+
+The plane fill (plane_fill.py) covers the unseen parts of the planes the training views' buffers show, and its
+box ends at the cameras. A wall that no view looks at -- the wall behind cameras that circle a group of chrome
+spheres, a ceiling above the frames' top edge -- is no plane of the buffers; mirror stereo (mirror_stereo.py)
+places what PLANAR mirrors show, not what spheres and other curved metal show. So that wall was the far field: a
+blur at infinity, which a test view turning to it looks at (zoo_spheres: the poster wall behind the training
+cameras).
+
+A room is closed: opposite a bounding plane there is, usually, another. For each bounding plane with no
+opposite one (an OPEN side, direction n), a wall facing back (normal -n) is swept along n from the box's face
+outwards (``SWEEP``: 40 offsets, 2 % to 3x the room's size beyond the face). At each offset the sharp mirror
+reflections of the training pixels (roughness < ``CLOSE_ROUGHNESS``, from the depth / normal / F0 buffers; open
+through the warmed-up model) that head that way and land on the hypothetical wall inside the other bounding
+planes are binned in cells on it; the radiance each brings (``specular / Fresnel(F0)``, log luminance) is averaged
+per (cell, view), and the score is the spread of the views' averages within a cell (robust: 95th-percentile
+clipped), relative to the spread of all of them. Where the wall really is, rays from different views and
+different curved mirrors that land in one cell saw the same patch: the score has its minimum there.
+(zoo_spheres, measured: the ceiling 0.83 above the box's top, true 0.83; then the poster wall 0.27 beyond the
+cameras, true 0.26.)
+
+A wall is placed only when the minimum is inside the sweep, holds ``MIN_SUPPORT`` (cell, view) pairs, and is at
+most ``MAX_RATIO`` of the score at the far end of the sweep (the far field is the alternative: a window or an
+opening, whose reflections agree best at infinity, stays open; a minimum on the sweep's far edge is logged, not
+placed). Sides are closed one at a time, the clearest first; each wall found bounds the next sweeps (a front
+wall ends at the ceiling found before it). A wall is one Gaussian per grid point of the plane inside the other
+bounds (the plane fill's spacing, coarser to fit the budget), not where a training view sees empty space, matte
+(the material of the room's other matte Gaussians: ``matte_material``), its colour the median radiance of the 16
+nearest landed reflections that show no light (lights are the highlight fill's; training refines the colour); the
+points are returned so that the plane fill reaches the new wall (``extend_plane_fill``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from models.gaussians import Gaussians
+
+from .plane_fill import SCALE, Room, _grid
+from .reflection_fill import LUMINANCE, matte_material, mirror_rays, scene_box, seen_empty
+
+CLOSE_ROUGHNESS = 0.15   # reflections sharp enough to say where what they show is
+SWEEP = np.geomspace(0.02, 3.0, 40)  # offsets beyond the box's face, x the room's size
+CELLS = 40               # cells across the room's size on the hypothetical wall
+MIN_SUPPORT = 200        # (cell, view) pairs in cells that two or more views reach
+MAX_RATIO = 0.5          # the minimum's score at most this x the far end's
+OPPOSITE = -0.95         # two bounding planes with normals' dot below this face each other
+HIGHLIGHT = 3.0          # the highlight fill's brightness: reflections brighter than this x the views' 99th
+                         # percentile of diffuse radiance show lights
+
+
+def _score(x: np.ndarray, r: np.ndarray, lum: np.ndarray, view: np.ndarray, n: np.ndarray, s: float,
+           bounds: list, tol: float, cell: float) -> tuple[float, int, np.ndarray]:
+    """(score, support, landed mask) of the wall n . p = s for the rays x + t r: the within-cell spread of the
+    views' mean log radiance relative to the spread of all (module docstring); nan without support."""
+    t = (s - x @ n) / (r @ n)
+    hit = x + t[:, None] * r
+    ok = t > 0
+    for n2, d2 in bounds:
+        ok &= hit @ n2 - d2 > -tol
+    if ok.sum() < 2:
+        return math.nan, 0, ok
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    h = hit[ok]
+    cells = np.stack([np.floor(h @ u / cell), np.floor(h @ v / cell)], 1).astype(np.int64)
+    _, cell_id = np.unique(cells, axis=0, return_inverse=True)
+    cell_id = cell_id.reshape(-1)
+    pair, pair_id = np.unique(np.stack([cell_id, view[ok]], 1), axis=0, return_inverse=True)
+    pair_id = pair_id.reshape(-1)
+    count = np.bincount(pair_id)
+    mean = np.bincount(pair_id, weights=lum[ok]) / count
+    pair_cell = pair[:, 0]
+    views_in_cell = np.bincount(pair_cell)
+    cell_mean = np.bincount(pair_cell, weights=mean) / views_in_cell
+    multi = views_in_cell[pair_cell] >= 2
+    if not multi.any():
+        return math.nan, 0, ok
+    dev = (mean[multi] - cell_mean[pair_cell][multi]) ** 2
+    dev = np.minimum(dev, np.quantile(dev, 0.95))
+    return float(dev.mean() / max(float(lum[ok].var()), 1e-12)), int(multi.sum()), ok
+
+
+@torch.no_grad()
+def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: int = 20000, opacity: float = 0.9,
+               known: np.ndarray | None = None, max_walls: int = 3, seed: int = 0,
+               dtype=torch.float32) -> tuple[Gaussians | None, np.ndarray | None, dict]:
+    """Walls on the room's open sides where sharp reflections agree on them (module docstring). ``room``: the
+    plane fill's (its bounding planes grow by the walls placed); ``gaussians``: the warmed-up scene with what
+    the other fills placed (which reflections are still open); ``known``: points mirror stereo placed (a side
+    they reach, the box's face there set by them, is known: not swept -- an object seen only in a planar mirror
+    made its depth the sweep's minimum, and a wall across the whole room there: mirror_book's book). Returns
+    (Gaussians or None, the walls' points [M, 3] or None, statistics: ``walls`` (a description), ``added``,
+    ``notes``)."""
+    stats = {"walls": "none", "added": 0, "rays": 0, "notes": []}
+    t = rays.targets
+    if room is None or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth")):
+        return None, None, stats
+    found = mirror_rays(rays, max_rays=200000, seed=seed + 7)
+    if found is None:
+        return None, None, stats
+    x, r, index = found
+    sharp = t["roughness"][index].reshape(-1) < CLOSE_ROUGHNESS
+    lo, hi, step = scene_box(gaussians)
+    sharp &= ((x > lo) & (x < hi)).all(-1)
+    x, r, index = x[sharp], r[sharp], index[sharp]
+    if len(index) < MIN_SUPPORT:
+        return None, None, stats
+    open_ = trace_fn(x + step * r, r, gaussians).transmittance.reshape(-1) > 0.5
+    x, r, index = x[open_], r[open_], index[open_]
+    stats["rays"] = int(len(index))
+    if len(index) < MIN_SUPPORT:
+        return None, None, stats
+    d = rays.dirs[index].double()
+    normal = torch.nn.functional.normalize(t["normal"][index].double(), dim=-1)
+    cos = (d * normal).sum(-1).abs().clamp(0.0, 1.0)
+    f0 = t["f0"][index].double().clamp(0.0, 1.0)
+    fresnel = f0 + (1.0 - f0) * (1.0 - cos)[:, None] ** 5
+    radiance = (t["specular"][index].double() / fresnel.clamp_min(0.05)).clamp_min(0.0)
+    lum = np.log1p((radiance @ torch.tensor(LUMINANCE, dtype=torch.float64)).numpy())
+    # lights are the highlight fill's (reflection_fill.py): a wall's colour comes from the reflections no brighter
+    # than HIGHLIGHT x the 99th percentile of the diffuse radiance the views see (a lamp on the demo's ceiling, in
+    # the wall's colour and as the highlight fill's emitters too, was lit twice: its glossy box -1.5 dB)
+    direct = t["diffuse"][rays.mask].double() @ torch.tensor(LUMINANCE, dtype=torch.float64)
+    level = float(torch.quantile(direct[torch.randperm(len(direct), generator=torch.Generator().manual_seed(seed))
+                                        [:200000]], 0.99)) if len(direct) else math.inf
+    ordinary = np.expm1(lum) <= HIGHLIGHT * max(level, 1e-6)
+    x, r = x.double().numpy(), r.double().numpy()
+    view = rays.view_of_ray[index].numpy()
+    size = float((room.hi - room.lo).max())
+    cell = size / CELLS
+    box_corners = lambda lo, hi: np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])  # noqa: E731
+                                          for c in (lo[2], hi[2])])
+    corners = box_corners(room.lo, room.hi)
+    normals = [n for n, _, _ in room.bound]
+    sides = [n for n in normals if not any(float(m @ n) < OPPOSITE for m in normals)]
+    if known is not None and len(known) >= 10:
+        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
+    walls, described = [], []
+    while sides and len(walls) < max_walls:
+        best = None
+        bounds = [(n, dd) for n, dd, _ in room.bound]
+        for n in sides:
+            going = r @ n > 0.05
+            face = float((corners @ n).max())
+            offsets = face + size * SWEEP
+            scores = [_score(x[going], r[going], lum[going], view[going], n, s, bounds, room.tol, cell)[:2]
+                      for s in offsets]
+            value = np.array([sc for sc, _ in scores])
+            support = np.array([sp for _, sp in scores])
+            valid = np.isfinite(value) & (support >= MIN_SUPPORT)
+            if valid.sum() < 5:
+                continue
+            i = int(np.nanargmin(np.where(valid, value, np.nan)))
+            far = float(np.nanmedian(value[np.nonzero(valid)[0][-5:]]))
+            ratio = value[i] / max(far, 1e-12)
+            axis = int(np.argmax(np.abs(n)))
+            where = ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
+            if i >= np.nonzero(valid)[0][-1] - 1:
+                stats["notes"].append(f"room closing: the open side {where} agrees best at the far edge of its "
+                                      f"sweep ({SWEEP[-1]:g}x the room's size): left open (the far field)")
+                continue
+            if ratio > MAX_RATIO:
+                continue
+            if best is None or ratio < best[0]:
+                best = (ratio, n, float(offsets[i]), face, where, int(support[i]))
+        if best is None:
+            break
+        ratio, n, s, face, where, support = best
+        sides = [m for m in sides if m is not n]
+        going = r @ n > 0.05
+        _, _, landed = _score(x[going], r[going], lum[going], view[going], n, s, bounds, room.tol, cell)
+        tt = (s - x[going] @ n) / (r[going] @ n)
+        keep = landed & ordinary[going]
+        points = (x[going] + tt[:, None] * r[going])[keep]
+        colours = radiance.numpy()[going][keep]
+        if len(points) < 16:
+            points, colours = (x[going] + tt[:, None] * r[going])[landed], radiance.numpy()[going][landed]
+        walls.append((n, s, points, colours))
+        room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))  # the wall faces back into the room
+        grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])  # the box reaches the wall
+        corners = box_corners(grown.min(0), grown.max(0))
+        described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
+                         f"the far end's)")
+    if not walls:
+        return None, None, stats
+    stats["walls"] = "; ".join(described)
+    bounds = [(n, dd) for n, dd, _ in room.bound]
+    h = room.h
+    for _ in range(4):  # the grid coarsens until the walls fit the budget
+        grids = []
+        for n, s, _, _ in walls:
+            # the room's box carried out to every wall, then the other bounds
+            g = _grid(n, s, corners.min(0) - room.tol, corners.max(0) + room.tol, h)
+            keep = np.ones(len(g), dtype=bool)
+            for n2, d2 in bounds:
+                keep &= g @ n2 - d2 > -room.tol
+            g = g[keep]
+            if len(g):
+                g = g[~seen_empty(torch.from_numpy(g), rays.views).numpy()]
+            grids.append(g)
+        if sum(len(g) for g in grids) <= count:
+            break
+        h *= math.sqrt(sum(len(g) for g in grids) / count) * 1.05
+    parts, all_points = [], []
+    f = dict(dtype=dtype)
+    rough, f0 = matte_material(gaussians)  # what the room's ordinary surfaces are made of
+    for (n, s, points, colours), g in zip(walls, grids):
+        if not len(g):
+            continue
+        k = min(16, len(points))
+        _, near = cKDTree(points).query(g, k=k)
+        colour = np.median(colours[np.asarray(near).reshape(len(g), k)], axis=1)
+        m = len(g)
+        parts.append(Gaussians(
+            means=torch.tensor(g, **f), quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(m, 1),
+            log_scales=torch.full((m, 3), math.log(SCALE * h), **f),
+            opacity_logits=torch.full((m,), math.log(opacity / (1 - opacity)), **f),
+            diffuse=torch.tensor(colour, **f), normals=torch.tensor(-n, **f).reshape(1, 3).repeat(m, 1),
+            roughness=torch.full((m,), rough, **f), f0=torch.full((m, 3), f0, **f)))
+        all_points.append(g)
+    if not parts:
+        return None, None, stats
+    fill = Gaussians.cat(parts)
+    stats["added"] = len(fill)
+    return fill, np.concatenate(all_points), stats
+
+
+def keep_inside(points: torch.Tensor, room: Room | None) -> int:
+    """Moves ``points`` [N, 3] (in place) that lie beyond a wall ``close_room`` placed onto the room's side of it,
+    one grid spacing in front of it; returns how many moved. The highlight fill puts the lights seen only in
+    mirrors where their reflections end together, on a box it scales: above a ceiling closed later they were
+    hidden behind it (the demo's lamp, 2.49 m up, under a ceiling found at 2.47: its mirror-ball view lost 2.7 dB)."""
+    if room is None or not len(points):
+        return 0
+    moved = torch.zeros(len(points), dtype=torch.bool, device=points.device)
+    for n, d, inl in room.bound:
+        if len(inl):
+            continue  # a plane the buffers show: the highlight fill's rays were open through it
+        m = torch.tensor(n, dtype=points.dtype, device=points.device)
+        depth = points @ m - (d + room.h)
+        out = depth < 0
+        points[out] -= depth[out, None] * m
+        moved |= out
+    return int(moved.sum())
