@@ -306,7 +306,8 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
     if kind == "deep_outlier":
         big = gs.subset(torch.arange(len(gs.means)) == 0)
         big.means = torch.tensor([[0.0, 0.0, -0.6]])
-        big.log_scales = torch.full((1, 3), math.log(0.6))
+        big.log_scales = torch.full((1, 3), math.log(0.8))
+        big.opacity_logits = torch.full((1,), 3.0)  # its cut-off reaches ~1.4 m: past the camera at z = -1.6
         gs = Gaussians.cat([gs, big])
     # a short first window (1/50 of the default) for both: where the first window already reaches the surface or
     # turns opaque (a small room, a dense cloud round the camera) the two ways examine the same boxes (default:
