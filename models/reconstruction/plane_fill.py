@@ -167,20 +167,21 @@ def _grid(n: np.ndarray, d: float, lo: np.ndarray, hi: np.ndarray, h: float) -> 
     return pts[((pts >= lo) & (pts <= hi)).all(1)]
 
 
-def _surfels(pos: np.ndarray, normal: np.ndarray, h: float, opacity: float, src: dict, idx: np.ndarray,
-             dtype) -> Gaussians:
+def _surfels(pos: np.ndarray, normal: np.ndarray, h: float, opacity: float, diffuse: np.ndarray,
+             roughness: np.ndarray | float, f0: np.ndarray | float, dtype) -> Gaussians:
+    """Isotropic opaque surfels (scale ``SCALE`` h) at ``pos`` [n, 3] facing ``normal``, of the given material
+    (diffuse [n, 3]; roughness [n] and f0 [n, 3], or one value for all)."""
     n = len(pos)
     f = dict(dtype=dtype)
-    med = lambda a: torch.tensor(np.median(a[idx], axis=1), **f)  # noqa: E731  [n, 16, ...] -> [n, ...]
     return Gaussians(
         means=torch.tensor(pos, **f),
         quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(n, 1),
         log_scales=torch.full((n, 3), math.log(SCALE * h), **f),
         opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
-        diffuse=med(src["diffuse"]).clamp_min(0.0).reshape(n, 3),
+        diffuse=torch.tensor(diffuse, **f).clamp_min(0.0).reshape(n, 3),
         normals=torch.tensor(normal, **f).reshape(1, 3).repeat(n, 1),
-        roughness=med(src["roughness"]).clamp(0.0, 1.0).reshape(n),
-        f0=med(src["f0"]).clamp(0.0, 1.0).reshape(n, 3),
+        roughness=torch.as_tensor(roughness, **f).clamp(0.0, 1.0).expand(n).reshape(n),
+        f0=torch.as_tensor(f0, **f).clamp(0.0, 1.0).expand(n, 3).reshape(n, 3),
     )
 
 
@@ -245,7 +246,9 @@ def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.n
         k = min(16, len(mat))
         _, nearest = cKDTree(pts[mat]).query(cand[sel], k=k)
         nearest = mat[np.asarray(nearest).reshape(int(sel.sum()), k)]
-        parts.append(_surfels(cand[sel], n, h, opacity, src, nearest, dtype))
+        med = lambda a: np.median(a[nearest], axis=1)  # noqa: E731  [m, 16, ...] -> [m, ...]
+        parts.append(_surfels(cand[sel], n, h, opacity, med(src["diffuse"]), med(src["roughness"]).reshape(-1),
+                              med(src["f0"]), dtype))
     fill = Gaussians.cat(parts)
     stats["added"] = len(fill)
     return fill, stats

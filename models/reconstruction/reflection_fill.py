@@ -30,6 +30,7 @@ from models.gaussians import Gaussians
 
 SHINY_F0 = 0.3
 SHINY_ROUGHNESS = 0.3
+HIGHLIGHT_BRIGHTNESS = 3.0  # a reflection this many times brighter than the views' lit surfaces shows a light
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
@@ -85,6 +86,17 @@ def shiny(f0, roughness):
     """Mirror-like pixels (bool, works on numpy and torch): mean F0 > SHINY_F0 and roughness < SHINY_ROUGHNESS;
     ``f0`` [..., 3], ``roughness`` [..., 1]."""
     return (f0.mean(-1) > SHINY_F0) & (roughness[..., 0] < SHINY_ROUGHNESS)
+
+
+def diffuse_level(rays, gen: torch.Generator) -> float:
+    """The 99th percentile of the luminance of the training views' diffuse radiance (200,000 random valid pixels
+    drawn with ``gen``; at least 1e-6): the brightest lit surface they see. A reflection brighter than
+    ``HIGHLIGHT_BRIGHTNESS`` x this shows a light."""
+    t = rays.targets
+    direct = torch.nonzero(rays.mask).reshape(-1)
+    direct = direct[torch.randperm(len(direct), generator=gen)[:200000]]
+    lum = torch.tensor(LUMINANCE, dtype=t["diffuse"].dtype)
+    return max(float(torch.quantile(t["diffuse"][direct] @ lum, 0.99)) if len(direct) else 0.0, 1e-6)
 
 
 def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
@@ -225,7 +237,8 @@ def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: 
 
 
 @torch.no_grad()
-def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: float = 3.0, opacity: float = 0.5,
+def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: float = HIGHLIGHT_BRIGHTNESS,
+                             opacity: float = 0.5,
                              max_count: int = 4000, seed: int = 0,
                              dtype=torch.float32) -> tuple[Gaussians | None, dict]:
     """Emitters seen only in mirrors: one Gaussian per HIGHLIGHT mirror ray, where the light is.
@@ -253,9 +266,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     stats["mirror_rays"] = len(index)
     lum = torch.tensor(LUMINANCE, dtype=t["diffuse"].dtype)
     gen = torch.Generator().manual_seed(seed + 2)
-    direct = torch.nonzero(rays.mask).reshape(-1)
-    direct = direct[torch.randperm(len(direct), generator=gen)[:200000]]
-    level = max(float(torch.quantile(t["diffuse"][direct] @ lum, 0.99)) if len(direct) else 0.0, 1e-6)
+    level = diffuse_level(rays, gen)
     radiance = t["specular"][index] / t["f0"][index].clamp_min(0.05)
     bright = (radiance @ lum) > brightness * level
     lo, hi, step = scene_box(gaussians)

@@ -39,8 +39,11 @@ from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
 
-from .plane_fill import SCALE, Room, _grid
-from .reflection_fill import LUMINANCE, matte_material, mirror_rays, scene_box, seen_empty
+from models.pathtrace.brdf import fresnel_schlick
+
+from .plane_fill import Room, _grid, _surfels
+from .reflection_fill import (HIGHLIGHT_BRIGHTNESS, LUMINANCE, diffuse_level, matte_material, mirror_rays,
+                              scene_box, seen_empty)
 
 CLOSE_ROUGHNESS = 0.15   # reflections sharp enough to say where what they show is
 SWEEP = np.geomspace(0.02, 3.0, 40)  # offsets beyond the box's face, x the room's size
@@ -48,8 +51,6 @@ CELLS = 40               # cells across the room's size on the hypothetical wall
 MIN_SUPPORT = 200        # (cell, view) pairs in cells that two or more views reach
 MAX_RATIO = 0.5          # the minimum's score at most this x the far end's
 OPPOSITE = -0.95         # two bounding planes with normals' dot below this face each other
-HIGHLIGHT = 3.0          # the highlight fill's brightness: reflections brighter than this x the views' 99th
-                         # percentile of diffuse radiance show lights
 
 
 def _score(x: np.ndarray, r: np.ndarray, lum: np.ndarray, view: np.ndarray, n: np.ndarray, s: float,
@@ -118,17 +119,13 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
     d = rays.dirs[index].double()
     normal = torch.nn.functional.normalize(t["normal"][index].double(), dim=-1)
     cos = (d * normal).sum(-1).abs().clamp(0.0, 1.0)
-    f0 = t["f0"][index].double().clamp(0.0, 1.0)
-    fresnel = f0 + (1.0 - f0) * (1.0 - cos)[:, None] ** 5
+    fresnel = fresnel_schlick(t["f0"][index].double().clamp(0.0, 1.0), cos)
     radiance = (t["specular"][index].double() / fresnel.clamp_min(0.05)).clamp_min(0.0)
     lum = np.log1p((radiance @ torch.tensor(LUMINANCE, dtype=torch.float64)).numpy())
     # lights are the highlight fill's (reflection_fill.py): a wall's colour comes from the reflections no brighter
-    # than HIGHLIGHT x the 99th percentile of the diffuse radiance the views see (a lamp on the demo's ceiling, in
-    # the wall's colour and as the highlight fill's emitters too, was lit twice: its glossy box -1.5 dB)
-    direct = t["diffuse"][rays.mask].double() @ torch.tensor(LUMINANCE, dtype=torch.float64)
-    level = float(torch.quantile(direct[torch.randperm(len(direct), generator=torch.Generator().manual_seed(seed))
-                                        [:200000]], 0.99)) if len(direct) else math.inf
-    ordinary = np.expm1(lum) <= HIGHLIGHT * max(level, 1e-6)
+    # than HIGHLIGHT_BRIGHTNESS x the brightest lit surface the views see (a lamp on the demo's ceiling, in the
+    # wall's colour and as the highlight fill's emitters too, was lit twice: its glossy box -1.5 dB)
+    ordinary = np.expm1(lum) <= HIGHLIGHT_BRIGHTNESS * diffuse_level(rays, torch.Generator().manual_seed(seed))
     x, r = x.double().numpy(), r.double().numpy()
     view = rays.view_of_ray[index].numpy()
     size = float((room.hi - room.lo).max())
@@ -207,7 +204,6 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
             break
         h *= math.sqrt(sum(len(g) for g in grids) / count) * 1.05
     parts, all_points = [], []
-    f = dict(dtype=dtype)
     rough, f0 = matte_material(gaussians)  # what the room's ordinary surfaces are made of
     for (n, s, points, colours), g in zip(walls, grids):
         if not len(g):
@@ -215,13 +211,7 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
         k = min(16, len(points))
         _, near = cKDTree(points).query(g, k=k)
         colour = np.median(colours[np.asarray(near).reshape(len(g), k)], axis=1)
-        m = len(g)
-        parts.append(Gaussians(
-            means=torch.tensor(g, **f), quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(m, 1),
-            log_scales=torch.full((m, 3), math.log(SCALE * h), **f),
-            opacity_logits=torch.full((m,), math.log(opacity / (1 - opacity)), **f),
-            diffuse=torch.tensor(colour, **f), normals=torch.tensor(-n, **f).reshape(1, 3).repeat(m, 1),
-            roughness=torch.full((m,), rough, **f), f0=torch.full((m, 3), f0, **f)))
+        parts.append(_surfels(g, -n, h, opacity, colour, rough, f0, dtype))
         all_points.append(g)
     if not parts:
         return None, None, stats
