@@ -9,6 +9,7 @@ import math
 import os
 import random
 
+import numpy as np
 import pytest
 import torch
 import warp as wp
@@ -326,6 +327,78 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
     if kind in ("room", "deep_inside"):  # and it does act there
         assert inside.all() and not torch.equal(outs[0].candidates, outs[1].candidates), f"seed {seed}: {kind}"
     assert outs[0].blended_count.float().mean() > 1.5, f"{kind}: scene too sparse to test blending"
+
+
+def _turned(gs: Gaussians, origins, dirs, flip):
+    """The scene and rays negated along the axes where ``flip`` is -1: a point reflection (all three: each
+    covariance unchanged) or a half turn about the remaining axis (two). The same image."""
+    f = torch.tensor(flip, dtype=torch.float32)
+    params = gs.params()
+    params["means"] = gs.means * f
+    if flip.count(-1) == 2:  # quaternion (0, e_axis) times q: a half turn about the axis kept
+        w, x, y, z = gs.quats.unbind(1)
+        params["quats"] = {0: torch.stack([-x, w, -z, y], 1), 1: torch.stack([-y, z, w, -x], 1),
+                           2: torch.stack([-z, -y, x, w], 1)}[flip.index(1)]
+    return Gaussians(**params), origins * f, dirs * f
+
+
+@pytest.mark.parametrize("kind", ["room", "deep", "dense_init", "overlap"])
+def test_octant_trees_change_no_output(kind):
+    """The eight octant trees (octant_bvh: bounds mirrored per octant of ray directions, so a node's nearer child
+    is visited first) change only the order in which a window's boxes are visited: every output and count is bit
+    for bit the plain tree's, on every scene type (fresh seeds), the scene turned so that its cameras look into
+    other octants. The mirrored trees hold the mirrored boxes, and the order acts: the deep cloud seen along
+    +z (where the plain tree visits the farther child first) examines fewer boxes with them."""
+    from models.tracer.bvh import octant_flip
+
+    seed = fresh_seed()
+    scene = scene_type(kind, seed)
+    for flip in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1), (-1, -1, -1)):
+        gs, origins, dirs = _turned(*scene, flip)
+        tracers = [Tracer(TracerConfig(octant_bvh=flag)) for flag in ("on", "off")]
+        outs = [t.trace(origins, dirs, gs) for t in tracers]
+        for name in OUTPUTS + ["hit_count", "blended_count"]:
+            assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind} {flip}: {name}"
+        assert len(tracers[0].bvh.mirrored) == 7 and not tracers[1].bvh.mirrored
+        lo, hi = tracers[0].bvh.lowers.numpy(), tracers[0].bvh.uppers.numpy()
+        for k, (_, mlo, mhi) in enumerate(tracers[0].bvh.mirrored, start=1):
+            s = np.array(octant_flip(k))
+            assert np.array_equal(mlo.numpy(), np.where(s > 0, lo, -hi)), f"octant {k}"
+            assert np.array_equal(mhi.numpy(), np.where(s > 0, hi, -lo)), f"octant {k}"
+    gs, origins, dirs = scene_type("deep", seed)  # looking along +z
+    cand = [Tracer(TracerConfig(octant_bvh=flag)).trace(origins, dirs, gs).candidates.sum().item()
+            for flag in ("on", "off")]
+    assert cand[0] < 0.95 * cand[1], f"seed {seed}: candidates with / without octant trees {cand}"
+
+
+def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypatch):
+    """octant_bvh auto: a tree that traces few rays between updates (a CPU training step) never builds or refits
+    the mirrored trees; once the rays since the last update reach OCTANT_RAYS it refreshes them and uses them
+    until the next update (which makes them stale: a moved scene is traced right, no stale mirrored tree)."""
+    import models.tracer.tracer as tracer_module
+
+    monkeypatch.setattr(tracer_module, "OCTANT_RAYS", 300)
+    gs, origins, dirs = scene_type("deep", fresh_seed())  # 144 rays per trace
+    tracer, plain = Tracer(TracerConfig(octant_bvh="auto")), Tracer(TracerConfig(octant_bvh="off"))
+    first = tracer.trace(origins, dirs, gs)
+    assert not tracer.bvh.mirrored and not tracer._octants
+    tracer.trace(origins, dirs, gs)
+    third = tracer.trace(origins, dirs, gs)  # 432 rays since the update
+    assert len(tracer.bvh.mirrored) == 7 and tracer._octants and tracer.bvh.octants_current
+    for name in OUTPUTS + ["hit_count", "blended_count"]:
+        assert torch.equal(getattr(first, name), getattr(third, name)), name
+    assert third.candidates.sum() < first.candidates.sum()
+    with torch.no_grad():
+        gs.means += 0.05  # an optimiser step: the next update refits, the mirrored trees go stale
+    moved = tracer.trace(origins, dirs, gs)
+    assert not tracer._octants and not tracer.bvh.octants_current
+    for _ in range(2):
+        moved_octants = tracer.trace(origins, dirs, gs)
+    assert tracer._octants  # refitted, not rebuilt: the same trees
+    truth = plain.trace(origins, dirs, gs)
+    for name in OUTPUTS + ["hit_count", "blended_count"]:
+        assert torch.equal(getattr(moved, name), getattr(truth, name)), name
+        assert torch.equal(getattr(moved_octants, name), getattr(truth, name)), name
 
 
 def test_ten_thousand_hits_on_one_ray_render_correctly():

@@ -36,6 +36,13 @@ class TracerConfig:
                                         "(a camera or reflection vertex in a room) takes all of itself as its "
                                         "first window (the opaque cut ends it at the first surface) instead of "
                                         "window; only the cost depends on it", runtime=True)
+    octant_bvh: str = setting("auto", "interval traversal: seven more BVHs over the bounds mirrored per octant of "
+                              "ray directions, so that every node is visited nearer child first and a window that "
+                              "turns opaque stops soon after its cut (models/tracer/bvh.py); the hits and their "
+                              "order do not depend on it. They cost seven more refits per update: auto = used once "
+                              "a tree has traced enough rays since its last update to pay for them (renders, "
+                              "whole-view GPU steps; not the CPU's 4096-ray training steps), on = always, off = never",
+                              enum=["auto", "on", "off"], runtime=True)
     replay_capacity: int = setting(64, "replay buffer slots per ray at start (the blended hits, kept for the "
                                    "backward, plus the window being sorted); grows when a ray needs more",
                                    minimum=2)

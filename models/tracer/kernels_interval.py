@@ -27,6 +27,14 @@ per ray to take T to the threshold at the optical-depth rate seen so far
 (x1/2 .. x4). After a window with no hit of its own: x4, or, when it carried hits, only as far as the nearest
 of them plus one window length (a dense stretch behind a short empty one is not swallowed whole).
 
+Near child first: Warp's ``bvh_query_ray`` visits a node's two children in a fixed order (the one with the larger
+coordinates first), nearer first only for rays going down the split axis. With the octant trees
+(``TracerConfig.octant_bvh``; ``TraceParams.octants``) each window's query runs on the tree of the ray's direction
+octant, built over the bounds mirrored so that the ray goes down every axis (``octant_query``; models/tracer/bvh.py):
+the hits stored first are the near ones, so a window turns opaque, and its cut shrinks the query, after fewer boxes
+(benchmark (b) 3.51 -> 2.79 candidates per blended hit, (d) at 48x48 rays 70.5 -> 21.3). The boxes visited and
+every t are those of the plain tree.
+
 Opaque windows: once the hits stored in a window take T below the threshold (their product, in any order),
 the window is the ray's last. Its hits are sorted once and cut after the hit where T crosses the threshold plus
 one more (the tail rule's witness); D shrinks to that witness, so the rest of the query skips boxes entered
@@ -150,12 +158,35 @@ def later(t: float, gid: int, t_ref: float, id_ref: int) -> int:
 
 
 @wp.func
+def octant_query(prm: TraceParams, o: wp.vec3, d: wp.vec3):
+    """A ray query from ``o`` along ``d``: with octant trees, tree k of d's octant with o and d mirrored like
+    it, so that every node puts its nearer child first (bvh.py); the same boxes, crossings and t."""
+    if prm.octants == 0:
+        return wp.bvh_query_ray(prm.bvh, o, d)
+    k = int(0)
+    fx = float(1.0)
+    fy = float(1.0)
+    fz = float(1.0)
+    if d[0] > 0.0:
+        k += 1
+        fx = -1.0
+    if d[1] > 0.0:
+        k += 2
+        fy = -1.0
+    if d[2] > 0.0:
+        k += 4
+        fz = -1.0
+    f = wp.vec3(fx, fy, fz)
+    return wp.bvh_query_ray(prm.octant_bvh[k], wp.cw_mul(f, o), wp.cw_mul(f, d))
+
+
+@wp.func
 def probe_beyond(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, t_lo: float,
                  id_lo: int) -> wp.vec3:
     """(1 if an accepted hit lies after (t_lo, id_lo), candidates evaluated, of them in their ellipsoid): the tail
     rule of a ray that became opaque exactly at the end of what was examined."""
     shift = wp.max(t_lo - margin(t_lo), 0.0)
-    query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
+    query = octant_query(prm, o + shift * d, d)
     gid = int(0)
     found = int(0)
     cand = int(0)
@@ -249,7 +280,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             next_skip_ok = 0
             m, last, d_t, d_id, max_dist = cut_opaque(rep, ray, base, m, acc.trans, prm.trans_threshold, shift, d_t,
                                                       d_id, max_dist, last)
-        query = wp.bvh_query_ray(prm.bvh, o + shift * d, d)
+        query = octant_query(prm, o + shift * d, d)
 
         gid = int(0)
         while wp.bvh_query_next(query, gid, max_dist):

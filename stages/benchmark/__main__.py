@@ -47,6 +47,9 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--no-mitsuba", action="store_true", help="scene types: skip the Mitsuba 3 column")
     p.add_argument("--bvh", choices=["auto", "sah", "lbvh", "median"], help="BVH constructor of our tracers "
                    "(TracerConfig.bvh_constructor; auto: sah on a CPU, lbvh on a GPU)")
+    p.add_argument("--octants", choices=["on", "off", "auto"], help="scene types: our tracer's octant trees "
+                   "(TracerConfig.octant_bvh; default on, as a render uses them: refreshed once per update, and "
+                   "the timed traces do not update)")
     p.add_argument("--no-floor", action="store_true", help="scene types: skip the exact-order floor column "
                    "(boxes an exact t*-order traversal must examine per blended hit; stages/benchmark/floor.py)")
     a = p.parse_args(argv)
@@ -69,6 +72,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
         cfg.floor = False
     if a.bvh is not None:
         cfg.bvh = a.bvh
+    if a.octants is not None:
+        cfg.octants = a.octants
     cfg.__post_init__()
     return a.what, cfg, a.out
 

@@ -45,6 +45,7 @@ class TracerBenchmarkConfig:
     mitsuba: bool = True      # scene types: Mitsuba 3 ellipsoids on the same Gaussians and rays (mitsuba_ref.py)
     floor: bool = True        # scene types: the exact-order floor of candidates per blended hit (floor.py)
     bvh: str = "auto"         # TracerConfig.bvh_constructor of every tracer compared
+    octants: str = "on"       # scene types: our tracer's TracerConfig.octant_bvh (a render's: on once it pays)
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
@@ -173,14 +174,14 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     """One scene type: our default (interval) traversal, the single traversal it replaced and Mitsuba 3 on the
     same Gaussians and rays, timed interleaved (best of ``repeats``); counts per ray; fused / forward."""
     threads = max(cfg.threads)
-    ours = Tracer(_config(cfg, threads), cfg.device)
+    ours = Tracer(_config(cfg, threads, octant_bvh=cfg.octants), cfg.device)
     single = Tracer(_config(cfg, threads, traversal="single"), cfg.device)
     gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
     mitsuba_input = gs  # (the CPU copy: Mitsuba builds its scene from host arrays)
     tdev = ours.torch_device
     gs, origins, dirs = gs.to(device=tdev).requires_grad_(), origins.to(tdev), dirs.to(tdev)
     row: dict = {"scene": name, "description": SCENE_TYPES[name][0], "n_gaussians": len(gs), "rays": len(dirs),
-                 "threads": threads}
+                 "threads": threads, "octant_bvh": cfg.octants}
 
     def forward(tr):
         with torch.no_grad():
@@ -337,8 +338,10 @@ def format_table(result: dict) -> str:
         missed = [k for k, ok in r["targets_met"].items() if not ok]
         lines.append(f"N={r['n_gaussians']} res={r['resolution']}: targets missed: {', '.join(missed) or 'none'}")
     if result.get("scenes"):
-        lines += ["", "scene types (our default = interval traversal; single = the traversal it replaced; mitsuba = "
-                  "Mitsuba 3 ellipsoids on the same Gaussians and rays):", *_table(SCENE_COLUMNS, result["scenes"])]
+        octants = result["scenes"][0].get("octant_bvh", "auto")
+        lines += ["", f"scene types (our default = interval traversal, octant trees {octants}; single = the traversal "
+                  "it replaced; mitsuba = Mitsuba 3 ellipsoids on the same Gaussians and rays):",
+                  *_table(SCENE_COLUMNS, result["scenes"])]
         lines += [f"  {r['scene']}: {r['description']}" for r in result["scenes"]]
         lines.append("  floor: boxes an exact t*-order traversal must examine per blended hit (those the ray enters "
                      "before the t* of its last needed hit; stages/benchmark/floor.py, on a sample of the rays)")
