@@ -117,6 +117,24 @@ def test_stereo_puts_gaussians_on_the_panel_seen_only_in_the_mirror(which, reque
     assert near.mean() > 0.8
 
 
+def test_a_depth_needs_a_share_of_the_other_mirrors(stereo, monkeypatch):
+    """``min_share``: a depth is a candidate only where that share of the other mirrors (at least 3) sees it, so
+    the rule does not depend on how many views a capture has. Nine views here, eight others per reference: 0.3
+    asks for 3 (the sweep's own minimum: the very same points as without it), 0.9 for 8; every depth
+    of this panel is seen by all eight, so none of them changes what is found."""
+    import models.reconstruction.mirror_stereo as ms
+
+    fill, stats = stereo
+    asked = []
+    sweep = ms.sweep_view
+    monkeypatch.setattr(ms, "sweep_view", lambda *a, **k: asked.append(k.get("min_views", 3)) or sweep(*a, **k))
+    for share, views in ((0.3, 3), (0.9, 8)):
+        asked.clear()
+        got, got_stats = mirror_stereo_gaussians(_rays(), reference_trace, _room(), count=100000, min_share=share)
+        assert asked == [views] * 9, (share, asked)
+        assert got_stats["kept"] == stats["kept"] and torch.equal(got.means, fill.means), share
+
+
 def test_stereo_gaussians_carry_the_reflected_colour(stereo):
     fill, _ = stereo
     p = fill.means.numpy()

@@ -105,6 +105,11 @@ class ReconstructConfig:
                                          minimum=0)
     mirror_stereo_count: int = setting(8000, "with the far field: Gaussians placed by stereo on planar mirrors "
                                        "(0 = off)", minimum=0)
+    mirror_stereo_min_share: float = setting(0.3, "mirror stereo: a depth is a candidate only where at least this "
+                                             "share of the other mirrors (and at least 3) see it: 6 of 19 on a "
+                                             "20-view room (3 placed a fifth more stereo Gaussians on "
+                                             "zoo_mirror_metal and more haze in its view from behind the cameras; "
+                                             "models/reconstruction/mirror_stereo.py)", minimum=0, maximum=1)
     plane_fill_count: int = setting(20000, "Gaussians (at most) on the unseen parts of the planes that bound the "
                                     "room (walls, floor, ceiling found in the depth + normal buffers), added before "
                                     "warm-up, geometry frozen, never pruned for want of blending weight "

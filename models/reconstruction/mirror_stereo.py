@@ -14,7 +14,11 @@ points on the book where all views kept 410), averaged over a small window of th
 match as patches, not pixels). The depth kept is the best one when it is clearly better than every depth
 outside its basin (``ratio``), good in itself (``max_cost``), localised (its basin under ``max_basin`` of
 the sweep) and textured (``min_contrast``): flat colour has no clear best and adds nothing. Depths that a
-training camera sees to be empty (``seen_empty``) are not candidates.
+training camera sees to be empty (``seen_empty``) are not candidates, nor are those that fewer than ``min_share``
+of the other mirrors see (and at least 3; the trainer's ``mirror_stereo_min_share``, 0.3: 6 of 19 other mirrors
+in a 20-view room; at 3 zoo_mirror_metal placed ~20 % more stereo Gaussians and its test view from behind the
+cameras saw more haze: README, "Tried at a5aa806"). A share, not a count: a capture with fewer views of its mirror
+keeps its stereo.
 
 The mirrors then check each other (``depth_votes``): a kept point, reflected about another mirror and projected
 into its view, lands on that mirror's own kept depth (agrees), on a depth well beyond it (that mirror's
@@ -341,9 +345,10 @@ def depth_votes(points: np.ndarray, view: MirrorView, depth: np.ndarray, tol: fl
 @torch.no_grad()
 def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6000, far_scale: float = 3.0,
                             opacity: float = 0.3, seed: int = 0, dtype=torch.float32, min_agree: int = 1,
-                            agree_tol: float = 0.03, **sweep) -> tuple[Gaussians | None, dict]:
+                            agree_tol: float = 0.03, min_share: float = 0.0, **sweep) -> tuple[Gaussians | None, dict]:
     """Up to ``count`` Gaussians where the plane sweep of every planar mirror (of every view) finds a clear depth
-    (module docstring). Candidates lie between the mirror and where the reflected ray leaves the cube about
+    (module docstring); ``min_share`` > 0: a depth needs that share of the other mirrors (at least 3) to see it.
+    Candidates lie between the mirror and where the reflected ray leaves the cube about
     the centre of the current Gaussians' box, ``far_scale`` times its largest side (an object seen only in a
     mirror may lie well outside the box of what the cameras see directly). ``trace_fn(origins, dirs,
     gaussians)`` decides which reflections are open (None: all are). Returns (Gaussians or None, statistics
@@ -357,8 +362,10 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
     pos, colour, dist, fl, seen_along, depth = [], [], [], [], [], []
     for i, ref in enumerate(usable):
-        p, c, d, r, edge, filled, px = sweep_view(ref, usable[:i] + usable[i + 1:], rays.views, lo, hi, 20 * step,
-                                                  **sweep)
+        others = usable[:i] + usable[i + 1:]
+        if min_share > 0:  # at least this share of the other mirrors must see a depth (module docstring)
+            sweep["min_views"] = max(3, math.ceil(min_share * len(others) - 1e-9))
+        p, c, d, r, edge, filled, px = sweep_view(ref, others, rays.views, lo, hi, 20 * step, **sweep)
         stats["edge"] += edge
         stats["completed"] += filled
         pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))

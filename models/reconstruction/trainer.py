@@ -470,7 +470,7 @@ class Trainer:
             stereo = None
             if cfg.mirror_stereo_count > 0:
                 stereo = mirror_stereo_gaussians(self.rays, self.backend.trace, scene, cfg.mirror_stereo_count,
-                                                 seed=cfg.seed)
+                                                 seed=cfg.seed, min_share=cfg.mirror_stereo_min_share)
                 fills.append((*stereo,
                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
