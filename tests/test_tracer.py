@@ -332,13 +332,15 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
 def _turned(gs: Gaussians, origins, dirs, flip):
     """The scene and rays negated along the axes where ``flip`` is -1: a point reflection (all three: each
     covariance unchanged) or a half turn about the remaining axis (two). The same image."""
+    from models.editing.ops import quat_multiply
+
     f = torch.tensor(flip, dtype=torch.float32)
     params = gs.params()
     params["means"] = gs.means * f
-    if flip.count(-1) == 2:  # quaternion (0, e_axis) times q: a half turn about the axis kept
-        w, x, y, z = gs.quats.unbind(1)
-        params["quats"] = {0: torch.stack([-x, w, -z, y], 1), 1: torch.stack([-y, z, w, -x], 1),
-                           2: torch.stack([-z, -y, x, w], 1)}[flip.index(1)]
+    if flip.count(-1) == 2:  # a half turn about the axis kept: the quaternion (0, e_axis) before each rotation
+        turn = torch.zeros(4)
+        turn[1 + flip.index(1)] = 1.0
+        params["quats"] = quat_multiply(turn.expand_as(gs.quats), gs.quats)
     return Gaussians(**params), origins * f, dirs * f
 
 
@@ -355,7 +357,7 @@ def test_octant_trees_change_no_output(kind):
     scene = scene_type(kind, seed)
     for flip in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1), (-1, -1, -1)):
         gs, origins, dirs = _turned(*scene, flip)
-        tracers = [Tracer(TracerConfig(octant_bvh=flag)) for flag in ("on", "off")]
+        tracers = [Tracer(TracerConfig(octant_bvh=flag)) for flag in ("always", "never")]
         outs = [t.trace(origins, dirs, gs) for t in tracers]
         for name in OUTPUTS + ["hit_count", "blended_count"]:
             assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind} {flip}: {name}"
@@ -367,7 +369,7 @@ def test_octant_trees_change_no_output(kind):
             assert np.array_equal(mhi.numpy(), np.where(s > 0, hi, -lo)), f"octant {k}"
     gs, origins, dirs = scene_type("deep", seed)  # looking along +z
     cand = [Tracer(TracerConfig(octant_bvh=flag)).trace(origins, dirs, gs).candidates.sum().item()
-            for flag in ("on", "off")]
+            for flag in ("always", "never")]
     assert cand[0] < 0.95 * cand[1], f"seed {seed}: candidates with / without octant trees {cand}"
 
 
@@ -379,7 +381,7 @@ def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypa
 
     monkeypatch.setattr(tracer_module, "OCTANT_RAYS", 300)
     gs, origins, dirs = scene_type("deep", fresh_seed())  # 144 rays per trace
-    tracer, plain = Tracer(TracerConfig(octant_bvh="auto")), Tracer(TracerConfig(octant_bvh="off"))
+    tracer, plain = Tracer(TracerConfig(octant_bvh="auto")), Tracer(TracerConfig(octant_bvh="never"))
     first = tracer.trace(origins, dirs, gs)
     assert not tracer.bvh.mirrored and not tracer._octants
     tracer.trace(origins, dirs, gs)
@@ -390,11 +392,12 @@ def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypa
     assert third.candidates.sum() < first.candidates.sum()
     with torch.no_grad():
         gs.means += 0.05  # an optimiser step: the next update refits, the mirrored trees go stale
+    trees = tracer.bvh.octant_ids.numpy().copy()
     moved = tracer.trace(origins, dirs, gs)
     assert not tracer._octants and not tracer.bvh.octants_current
     for _ in range(2):
         moved_octants = tracer.trace(origins, dirs, gs)
-    assert tracer._octants  # refitted, not rebuilt: the same trees
+    assert tracer._octants and np.array_equal(tracer.bvh.octant_ids.numpy(), trees)  # refitted: the same trees
     truth = plain.trace(origins, dirs, gs)
     for name in OUTPUTS + ["hit_count", "blended_count"]:
         assert torch.equal(getattr(moved, name), getattr(truth, name)), name
@@ -700,6 +703,9 @@ def test_ordered_traversal_matches_reference_and_stops_early(device, variant):
 def test_unknown_traversal_is_refused_by_name():
     with pytest.raises(ValueError, match="traversal must be one of interval, single, kbuffer, ordered, got 'bvh'"):
         TracerConfig(traversal="bvh")
+    for wrong in (True, "on"):  # a bool (YAML reads on / off as one) or another word is refused, not taken as always
+        with pytest.raises(ValueError, match=f"octant_bvh must be one of auto, always, never, got {wrong!r}"):
+            TracerConfig(octant_bvh=wrong)
 
 
 def test_non_finite_geometry_raises_instead_of_tracing():

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from models.settings import setting
 
+OCTANT_MODES = ("auto", "always", "never")  # TracerConfig.octant_bvh (not on / off: YAML reads those as booleans)
 TRAVERSALS = ("interval", "single", "kbuffer", "ordered")  # index = TraceParams.traversal
 BVH_CONSTRUCTORS = ("auto", "sah", "lbvh", "median")  # auto: Warp's choice (sah on a CPU, lbvh on a GPU)
 
@@ -41,8 +42,8 @@ class TracerConfig:
                               "turns opaque stops soon after its cut (models/tracer/bvh.py); the hits and their "
                               "order do not depend on it. They cost seven more refits per update: auto = used once "
                               "a tree has traced enough rays since its last update to pay for them (renders, "
-                              "whole-view GPU steps; not the CPU's 4096-ray training steps), on = always, off = never",
-                              enum=["auto", "on", "off"], runtime=True)
+                              "whole-view GPU steps; not the CPU's 4096-ray training steps), always, never",
+                              enum=list(OCTANT_MODES), runtime=True)
     replay_capacity: int = setting(64, "replay buffer slots per ray at start (the blended hits, kept for the "
                                    "backward, plus the window being sorted); grows when a ray needs more",
                                    minimum=2)
@@ -79,6 +80,8 @@ class TracerConfig:
             )
         if self.traversal not in TRAVERSALS:
             raise ValueError(f"traversal must be one of {', '.join(TRAVERSALS)}, got {self.traversal!r}")
+        if self.octant_bvh not in OCTANT_MODES:
+            raise ValueError(f"octant_bvh must be one of {', '.join(OCTANT_MODES)}, got {self.octant_bvh!r}")
         if not self.window > 0:
             raise ValueError(f"window must be > 0, got {self.window}")
         if self.bvh_constructor not in BVH_CONSTRUCTORS:

@@ -324,7 +324,7 @@ class Tracer:
         (50k Gaussians, 2 CPU cores: ~17 ms against ~4.6 us per ray), or when they are current anyway."""
         mode = self.config.octant_bvh
         self._rays_since_update += n_rays
-        if self.config.traversal != "interval" or mode == "off" or self.bvh.count <= 0:
+        if self.config.traversal != "interval" or mode == "never" or self.bvh.count <= 0:
             return False
         if mode == "auto" and not self.bvh.octants_current and self._rays_since_update < OCTANT_RAYS:
             return False

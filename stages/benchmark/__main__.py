@@ -47,8 +47,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--no-mitsuba", action="store_true", help="scene types: skip the Mitsuba 3 column")
     p.add_argument("--bvh", choices=["auto", "sah", "lbvh", "median"], help="BVH constructor of our tracers "
                    "(TracerConfig.bvh_constructor; auto: sah on a CPU, lbvh on a GPU)")
-    p.add_argument("--octants", choices=["on", "off", "auto"], help="scene types: our tracer's octant trees "
-                   "(TracerConfig.octant_bvh; default on, as a render uses them: refreshed once per update, and "
+    p.add_argument("--octants", choices=["always", "never", "auto"], help="scene types: our tracer's octant trees "
+                   "(TracerConfig.octant_bvh; default always, as a render uses them: refreshed once per update, and "
                    "the timed traces do not update)")
     p.add_argument("--no-floor", action="store_true", help="scene types: skip the exact-order floor column "
                    "(boxes an exact t*-order traversal must examine per blended hit; stages/benchmark/floor.py)")

@@ -45,7 +45,7 @@ class TracerBenchmarkConfig:
     mitsuba: bool = True      # scene types: Mitsuba 3 ellipsoids on the same Gaussians and rays (mitsuba_ref.py)
     floor: bool = True        # scene types: the exact-order floor of candidates per blended hit (floor.py)
     bvh: str = "auto"         # TracerConfig.bvh_constructor of every tracer compared
-    octants: str = "on"       # scene types: our tracer's TracerConfig.octant_bvh (a render's: on once it pays)
+    octants: str = "always"   # scene types: our tracer's TracerConfig.octant_bvh (a render's: built once it pays)
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
