@@ -325,7 +325,19 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
     if kind == "deep_outlier":  # the union of the bounds holds the camera, the core box does not
         assert ((origins >= union[0]) & (origins <= union[1])).all() and not inside.any(), f"seed {seed}"
     if kind in ("room", "deep_inside"):  # and it does act there
-        assert inside.all() and not torch.equal(outs[0].candidates, outs[1].candidates), f"seed {seed}: {kind}"
+        assert inside.all(), f"seed {seed}: {kind}"
+        # (on ~3 % of deep_inside seeds every ray's first short window already turns opaque, so both ways examine
+        # the same boxes: 5 of seeds 1000-1149, e.g. 1031, 1033, 1077; the next seeds then show it acting)
+        acted = []
+        for s in range(seed, seed + 3):
+            if s != seed:
+                gs, origins, dirs = scene_type("deep" if kind == "deep_inside" else kind, s)
+                origins = torch.zeros_like(origins) if kind == "deep_inside" else origins
+                outs = [t.trace(origins, dirs, gs) for t in tracers]
+            acted.append(not torch.equal(outs[0].candidates, outs[1].candidates))
+            if acted[-1]:
+                break
+        assert acted[-1], f"seeds {seed}..{seed + 2}: {kind}: the setting changed no ray's candidates"
     assert outs[0].blended_count.float().mean() > 1.5, f"{kind}: scene too sparse to test blending"
 
 
@@ -620,6 +632,10 @@ def test_thread_stripes_cover_every_ray_once():
     assert thread_stripes(64, 2) == [[(0, 64)]]
     chunks = [c for s in thread_stripes(1000, 2) for c in s]
     assert len(chunks) == 4 and min(b - a for a, b in chunks) >= 250
+    # every thread gets as many rays (within the chunks' rounding): 600 rays were 400 on one thread, 200 on the other
+    for n_rays, threads in [(600, 2), (1000, 3), (2011, 2), (300, 2)]:
+        per_thread = [sum(b - a for a, b in s) for s in thread_stripes(n_rays, threads)]
+        assert len(per_thread) == threads and max(per_thread) - min(per_thread) <= 2, (n_rays, per_thread)
 
 
 def test_cuda_kernels_compile_with_nvrtc():
@@ -781,3 +797,14 @@ def test_gather_kernel_sums_thread_rows_chains_to_raw_parameters_and_clears_rows
         left = torch.from_numpy(a.numpy()).reshape(threads, n, -1)
         assert torch.all(left[:, start:] == 0), (k, seed)
         assert torch.equal(left[:, :start].double(), rows[k][:, :start].reshape(threads, start, -1).float().double()), k
+
+
+def test_scene_box_quantile_is_torch_quantile_bit_for_bit():
+    """The core box's quantiles come from a top-k of the tail (tracer._quantile): the same bits as
+    torch.quantile's sort + linear interpolation, on either tail, with ties and tiny inputs."""
+    from models.tracer.tracer import _quantile
+    gen = torch.Generator().manual_seed(5)
+    for n in (1, 2, 3, 7, 200, 4286):
+        for x in (torch.randn(n, 3, generator=gen), torch.randint(0, 4, (n, 3), generator=gen).float()):
+            for q in (0.0, 0.005, 0.3, 0.5, 0.995, 1.0):
+                assert torch.equal(_quantile(x, q), x.quantile(q, dim=0)), (n, q)

@@ -45,10 +45,13 @@ def thread_stripes(n_rays: int, n_threads: int, chunks_per_thread: int = 8,
                    min_chunk: int = MIN_CHUNK_RAYS) -> list[list[tuple[int, int]]]:
     """Ray chunks of at least ``min_chunk`` rays (when there are that many) dealt round-robin to threads
     (balances image regions of unequal cost). One list per thread; each thread launches its chunks in turn with
-    its own gradient buffers: a small batch is one launch on one thread, not 16 launches and 2 gradient sums."""
+    its own gradient buffers: a small batch is one launch on one thread, not 16 launches and 2 gradient sums.
+    Past one chunk, the count is a multiple of the threads: 600 rays were 3 chunks of 200, two on one thread and
+    one on the other (that segment's wall time was 400 rays' instead of 300)."""
     n_chunks = min(n_threads * chunks_per_thread, -(-n_rays // max(min_chunk, 1)))
     if n_threads <= 1 or n_chunks <= 1:
         return [[(0, n_rays)]]
+    n_chunks = -(-n_chunks // n_threads) * n_threads
     chunks = ray_chunks(n_rays, n_chunks)
     stripes = [chunks[i::n_threads] for i in range(n_threads)]
     return [s for s in stripes if s] or [[(0, n_rays)]]
