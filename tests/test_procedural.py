@@ -116,3 +116,36 @@ def test_denoised_room_is_closer_to_the_converged_render(tmp_path):
         np.testing.assert_array_equal(den[layer], raw[layer])
     with pytest.raises(ValueError, match="synth.denoise: must be true or false"):
         parse_spec({**random_scene_config(11), "denoise": "yes"})
+
+
+def test_probe_rooms_look_where_the_training_orbit_does_not(tmp_path, capsys):
+    """``python -m stages.synth probe``: held-out probe scenes (README, "Held-out probes"). Their test views sit
+    between the training azimuths, lower than every training camera and inside the walls; --find picks rooms with
+    two mirror-like objects and a glossy dielectric; an existing config is not overwritten."""
+    from models.synth.cameras import path_poses
+    from models.synth.procedural import probe_scene, probe_worthy
+    from stages.config import load_config
+    from stages.synth.__main__ import main
+
+    schema = yaml.safe_load((SCHEMAS / "synth.schema.yaml").read_text())
+    assert [s for s in range(300, 400) if probe_worthy(random_scene_config(s))] == [338, 339, 375, 376]
+    for seed in (338, 376, 3, 17):
+        doc = probe_scene(seed)
+        jsonschema.validate(doc["synth"], schema)
+        spec = parse_spec(doc["synth"])
+        train = np.stack([p[:3, 3] for p in path_poses(spec.train)])
+        test = np.stack([p[:3, 3] for p in path_poses(spec.test)])
+        floor = next(o for o in doc["synth"]["objects"] if o["name"] == "floor")
+        hx, hz = floor["transform"]["scale"][:2]
+        assert len(test) == 3 and test[:, 1].max() < train[:, 1].min(), seed
+        assert (np.abs(test[:, 0]) < hx - 0.25).all() and (np.abs(test[:, 2]) < hz - 0.25).all(), seed
+        # no test camera where a training camera stands
+        assert np.linalg.norm(test[:, None] - train[None], axis=-1).min() > 0.2, seed
+    assert main(["probe", "338", "--find", "2", "--out-dir", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["probe_338.yaml", "probe_339.yaml"]
+    cfg = yaml.safe_load((tmp_path / "probe_338.yaml").read_text())
+    assert cfg == probe_scene(338) and "stages.synth probe 338" in (tmp_path / "probe_338.yaml").read_text()
+    committed = load_config("probe_338")  # the one in configs/scenes: what the README's numbers ran
+    assert committed["synth"] == probe_scene(338)["synth"]
+    assert main(["probe", "338", "--out-dir", str(tmp_path)]) == 1
+    assert "exists (--force overwrites it)" in capsys.readouterr().err

@@ -210,3 +210,40 @@ def random_scene_config(seed: int, resolution: tuple[int, int] = (64, 64), views
         "objects": b.objects,
         "cameras": {"train": train, "test": {"type": "orbit", "count": 0}},
     }
+
+
+def mirror_like(material: dict) -> bool:
+    """A smooth metal (conductor or metallic principled, roughness < 0.15): its reflection is sharp."""
+    metal = material.get("type") == "conductor" or material.get("metallic") == 1.0
+    return metal and float(material.get("roughness", 0.0)) < 0.15
+
+
+def probe_worthy(config: dict) -> bool:
+    """A room worth a held-out probe: at least two mirror-like objects and one glossy dielectric (principled,
+    roughness < 0.2: the floor counts), so that mirrors, other shiny things and a glossy surface share the views."""
+    materials = [o["material"] for o in config["objects"]]
+    glossy = [m for m in materials if m.get("type") == "principled" and m.get("metallic") == 0.0
+              and float(m.get("roughness", 1.0)) < 0.2]
+    return sum(mirror_like(m) for m in materials) >= 2 and len(glossy) >= 1
+
+
+def probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views: int = 20, spp: int = 256) -> dict:
+    """A held-out probe: the random room of ``seed`` (``random_scene_config``, the buffer network's training rooms)
+    as a scene document (``configs/scenes/*.yaml``: scene, kind, presets, synth) with three test views that look
+    where the training orbit does not: halfway between its azimuths, 1.35x its radius (inside the walls, at least
+    0.3 m from them) and at MIN_CAMERA_HEIGHT, below every training camera, so that they see sides of the objects
+    the orbit looks down on. Nobody tunes to these rooms (README, "Held-out probes")."""
+    synth = random_scene_config(seed, resolution=resolution, views=views, spp=spp)
+    train = synth["cameras"]["train"]
+    floor = next(o for o in synth["objects"] if o["name"] == "floor")
+    hx, hz = floor["transform"]["scale"][:2]  # the room's half extents
+    tx, tz = train["target"][0], train["target"][2]
+    reach = min(hx - abs(tx), hz - abs(tz)) - 0.3  # the orbit's centre is the target, off the room's centre
+    step = 360.0 / train["count"]
+    start = train["azimuth"][0] + step / 2
+    synth["cameras"]["test"] = {
+        "type": "orbit", "count": 3, "fov_y": train["fov_y"], "target": train["target"],
+        "radius": _r(min(1.35 * train["radius"], reach)),
+        "height": [MIN_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT], "azimuth": [_r(start), _r(start + 360.0)],
+    }
+    return {"scene": f"probe_{seed}", "kind": "synthetic", "presets": ["fast"], "synth": synth}

@@ -1,8 +1,9 @@
 """CLI: ``python -m stages.synth (--scene NAME | --config-json JSON) [--edits NAME...] [--splits test] --out DIR``
 (a synthetic capture; with ``--edits``, the ground truth of named edits: the scene re-rendered with their
 ``ground_truth`` ops), and ``python -m stages.synth procedural --count N --seed S --out DIR [--resolution W H]
-[--views V] [--spp P] [--no-denoise]`` (random training rooms, ``procedural.py``). The renderer is
-``models/synth``."""
+[--views V] [--spp P] [--no-denoise]`` (random training rooms, ``procedural.py``), and ``python -m stages.synth probe
+SEED... [--find N]`` (held-out probe scene configs: such rooms with test views the training orbit lacks). The renderer
+is ``models/synth``."""
 
 from __future__ import annotations
 
@@ -45,10 +46,59 @@ def procedural_main(argv: list[str]) -> int:
     return 0
 
 
+PROBE_HEADER = """\
+# Held-out probe (README, "Held-out probes"): the random room of models.synth.procedural seed {seed}, written by
+# `python -m stages.synth probe {seed}`. Nobody tunes to it: its test views (between the training azimuths, nearer
+# the walls, below every training camera) see sides of the objects the training orbit looks down on.
+#   snakemake --cores 2 --config scene={scene}
+"""
+
+
+def probe_main(argv: list[str]) -> int:
+    """``python -m stages.synth probe SEED...``: held-out probe scene configs (``procedural.probe_scene``)."""
+    p = argparse.ArgumentParser(
+        prog="python -m stages.synth probe",
+        description="Write configs/scenes/probe_<seed>.yaml for random rooms (the buffer network's generator) with "
+        "test views the training orbit does not have; then `snakemake --config scene=probe_<seed>` runs it. With "
+        "--find N: the first N seeds from SEED whose room holds two mirror-like objects and a glossy dielectric.")
+    p.add_argument("seeds", type=int, nargs="+", metavar="SEED", help="room seed(s) (models.synth.procedural)")
+    p.add_argument("--find", type=int, metavar="N", help="instead: the first N probe-worthy seeds from SEED on")
+    p.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parents[2] / "configs" / "scenes",
+                   help="where the scene configs go (default: configs/scenes)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing config")
+    args = p.parse_args(argv)
+    import yaml
+
+    from models.synth.procedural import probe_scene, probe_worthy, random_scene_config
+
+    if any(s < 0 for s in args.seeds) or (args.find is not None and args.find < 1):
+        print("error: seeds must be >= 0 and --find >= 1", file=sys.stderr)
+        return 1
+    seeds = args.seeds
+    if args.find is not None:
+        seeds, s = [], args.seeds[0]
+        while len(seeds) < args.find:
+            if probe_worthy(random_scene_config(s)):
+                seeds.append(s)
+            s += 1
+    for seed in seeds:
+        doc = probe_scene(seed)
+        path = args.out_dir / f"{doc['scene']}.yaml"
+        if path.exists() and not args.force:
+            print(f"error: {path} exists (--force overwrites it)", file=sys.stderr)
+            return 1
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(PROBE_HEADER.format(seed=seed, scene=doc["scene"]) + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=118))
+        print(f"wrote {path} (snakemake --cores 2 --config scene={doc['scene']})")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "procedural":
         return procedural_main(argv[1:])
+    if argv and argv[0] == "probe":
+        return probe_main(argv[1:])
     p = argparse.ArgumentParser(prog="python -m stages.synth", description=__doc__)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scene", help="scene name: loads configs/scenes/NAME.yaml (merged config)")
