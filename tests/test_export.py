@@ -283,7 +283,7 @@ def viewer_screenshot(tools: Path, splats: Path, camera, scale: int, profile: Pa
                                                                "fl_y": camera.fl_y, "c2w": camera.c2w.tolist()})}
         browser.call("Page.navigate", url=f"http://127.0.0.1:{server.server_address[1]}/index.html?"
                      + urllib.parse.urlencode(query))
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 300  # software WebGL: over 120 s once, with the 2 cores shared by trainings
         status = None
         while time.monotonic() < deadline:
             status = browser.evaluate("window.__status")
