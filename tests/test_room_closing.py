@@ -28,11 +28,16 @@ def spheres(tmp_path_factory):
     return build_rayset(capture, "train")
 
 
-def _seen_surfaces(rays) -> Gaussians:
+def _seen_surfaces(rays, glossy: bool = False) -> Gaussians:
     """What a warmed-up model holds: opaque surfels on the training pixels' points (no far field), the mirrors'
-    left out (thick surfels there would stop the reflections leaving them)."""
+    left out (thick surfels there would stop the reflections leaving them); ``glossy``: every glossy pixel's too
+    (room_closing.GLOSSY_ROUGHNESS, GLOSSY_F0: a varnished floor)."""
+    import models.reconstruction.room_closing as closing
+
     src = pixel_points(rays, max_points=60000)
     matte = ~shiny(src["f0"], src["roughness"][:, None])
+    if glossy:
+        matte &= ~((src["roughness"] < closing.GLOSSY_ROUGHNESS) & (src["f0"].mean(-1) > closing.GLOSSY_F0))
     src = {k: v[matte] for k, v in src.items()}
     n = len(src["points"])
     f = torch.float32
@@ -106,3 +111,39 @@ def test_lights_placed_beyond_a_wall_move_in_front_of_it(spheres):
     assert keep_inside(points, room) == 2
     assert torch.allclose(points[:, 1], torch.tensor([2.5 - room.h, 1.0, 2.5 - room.h]))
     assert torch.equal(points[1], before[1]) and torch.equal(points[:, [0, 2]], before[:, [0, 2]])
+
+
+@pytest.fixture(scope="module")
+def probe_338(tmp_path_factory):
+    """The held-out probe room 338, small: 20 cameras at 1.7-1.85 m look down at the room's middle; its ceiling
+    (y = 2.733) and two lights on it are in no training frame, only in two mirror cubes (their sharp reflections
+    agree on no wall) and in the glossy floor (roughness 0.34, F0 ~0.03) and a glossy cube."""
+    cfg = load_config("probe_338", presets=["ci"],  # 16 spp, denoised (at 4 spp, not denoised: 0.34 m low)
+                      overrides={"synth": {"resolution": [128, 96], "spp": 16, "denoise": True,
+                                           "cameras": {"train": {"count": 20}, "test": {"count": 0}}}})
+    capture = render_capture(cfg["synth"], tmp_path_factory.mktemp("probe_338") / "capture", progress=False)
+    return build_rayset(capture, "train")
+
+
+def test_a_ceiling_seen_only_in_glossy_reflections_is_closed_by_the_second_pass(probe_338, monkeypatch):
+    import models.reconstruction.room_closing as closing
+
+    rays = probe_338
+    tracer = Tracer(TracerConfig(num_threads=2))
+    seen = _seen_surfaces(rays, glossy=True)
+    _, stats = plane_fill_gaussians(rays)
+    room = stats["room"]
+    assert room.hi[1] < 2.0  # the first box ends far below the ceiling
+    n_bound = len(room.bound)
+    walls, points, info = close_room(room, rays, tracer.trace, seen, count=8000)
+    assert info["glossy_rays"] > info["rays"], info  # the glossy pass has more to go on (and, below, the sharp
+    # pass alone places nothing: its reflections, in the two small mirror cubes, agree on no wall)
+    assert walls is not None and "+y at" in info["walls"] and "glossy reflections" in info["walls"], info
+    ceiling = [d / n[1] for n, d, _ in room.bound[n_bound:] if abs(n[1]) > 0.9]
+    assert len(ceiling) == 1 and abs(ceiling[0] - 2.733) < 0.15, info
+    assert bool((walls.f0 == 0).all()) and bool((walls.diffuse >= 0).all())  # F0 0: a guessed F0 lit the ceiling
+    # without the glossy pass (as before it): the ceiling stays open (the far field)
+    monkeypatch.setattr(closing, "GLOSSY_ROUGHNESS", 0.0)
+    _, stats = plane_fill_gaussians(rays)
+    walls, _, info = close_room(stats["room"], rays, tracer.trace, seen, count=8000)
+    assert walls is None and info["walls"] == "none", info

@@ -19,13 +19,24 @@ different curved mirrors that land in one cell saw the same patch: the score has
 (zoo_spheres, measured: the ceiling 0.83 above the box's top, true 0.83; then the poster wall 0.27 beyond the
 cameras, true 0.26.)
 
+Sides the sharp reflections leave open (too few of them, or no clear minimum) are swept again with GLOSSY ones:
+every pixel below ``GLOSSY_ROUGHNESS`` (0.4) whose F0 is above ``GLOSSY_F0`` (a varnished floor, F0 ~0.03, too).
+Blurred, they still point: a ceiling whose lights the floor reflects is where the floor's reflections from
+different views agree. (Checked on trained models' scenes, offline: held-out probe_338, cameras look down from 1.7-1.85 m, the ceiling is in no frame and in
+two small mirror cubes only: 34 open sharp reflections, no wall; the floor at roughness 0.34 placed the ceiling
+0.91 above the box, true 0.89. probe_376: 0.54, true 0.56. zoo_thin, whose ceiling no view sees: 0.12, true
+0.18. The demo keeps its sharp ceiling: with glossy reflections in the same pass its +y side agreed best at the
+far edge.) Reflections with Monte Carlo noise mislead the glossy pass more than the sharp one (probe_338 at 4 spp
+without the denoiser: 0.34 m low; denoised, 0.08).
+
 A wall is placed only when the minimum is inside the sweep, holds ``MIN_SUPPORT`` (cell, view) pairs, and is at
 most ``MAX_RATIO`` of the score at the far end of the sweep (the far field is the alternative: a window or an
 opening, whose reflections agree best at infinity, stays open; a minimum on the sweep's far edge is logged, not
 placed). Sides are closed one at a time, the clearest first; each wall found bounds the next sweeps (a front
 wall ends at the ceiling found before it). A wall is one Gaussian per grid point of the plane inside the other
 bounds (the plane fill's spacing, coarser to fit the budget), not where a training view sees empty space, matte
-(the material of the room's other matte Gaussians: ``matte_material``), its colour the median radiance of the 16
+(the roughness of the room's other matte Gaussians, ``matte_material``, and F0 0: a guessed F0, never trained,
+lit zoo_thin's closed ceiling with reflections of its window), its colour the median radiance of the 16
 nearest landed reflections that show no light (lights are the highlight fill's; training refines the colour); the
 points are returned so that the plane fill reaches the new wall (``extend_plane_fill``)."""
 
@@ -46,6 +57,9 @@ from .reflection_fill import (HIGHLIGHT_BRIGHTNESS, LUMINANCE, diffuse_level, ma
                               scene_box, seen_empty)
 
 CLOSE_ROUGHNESS = 0.15   # reflections sharp enough to say where what they show is
+GLOSSY_ROUGHNESS = 0.4   # the second pass, on the sides still open: glossy reflections (blurred, but they point)
+GLOSSY_F0 = 0.01         # ... of any surface that reflects at all (a varnished floor: F0 ~0.03)
+MAX_RAYS = 200000        # reflections drawn per pass
 SWEEP = np.geomspace(0.02, 3.0, 40)  # offsets beyond the box's face, x the room's size
 CELLS = 40               # cells across the room's size on the hypothetical wall
 MIN_SUPPORT = 200        # (cell, view) pairs in cells that two or more views reach
@@ -86,36 +100,38 @@ def _score(x: np.ndarray, r: np.ndarray, lum: np.ndarray, view: np.ndarray, n: n
     return float(dev.mean() / max(float(lum[ok].var()), 1e-12)), int(multi.sum()), ok
 
 
-@torch.no_grad()
-def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: int = 20000, opacity: float = 0.9,
-               known: np.ndarray | None = None, max_walls: int = 3, seed: int = 0,
-               dtype=torch.float32) -> tuple[Gaussians | None, np.ndarray | None, dict]:
-    """Walls on the room's open sides where sharp reflections agree on them (module docstring). ``room``: the
-    plane fill's (its bounding planes grow by the walls placed); ``gaussians``: the warmed-up scene with what
-    the other fills placed (which reflections are still open); ``known``: points mirror stereo placed (a side
-    they reach, the box's face there set by them, is known: not swept -- an object seen only in a planar mirror
-    made its depth the sweep's minimum, and a wall across the whole room there: mirror_book's book). Returns
-    (Gaussians or None, the walls' points [M, 3] or None, statistics: ``walls`` (a description), ``added``,
-    ``notes``)."""
-    stats = {"walls": "none", "added": 0, "rays": 0, "notes": []}
+def _reflections(rays, trace_fn, gaussians: Gaussians, glossy: bool, seed: int) -> dict | None:
+    """The open reflections a pass sweeps with: the training pixels' perfect reflections (from the depth / normal /
+    F0 / roughness buffers) on the warmed-up Gaussians' side of the scene box, that leave ``gaussians``; sharp:
+    mirror-like pixels below ``CLOSE_ROUGHNESS``; ``glossy``: any pixel below ``GLOSSY_ROUGHNESS`` with mean F0 above
+    ``GLOSSY_F0`` (a varnished floor too). None with fewer than MIN_SUPPORT of them. The radiance each brings is
+    ``specular / Fresnel(F0)`` (log luminance ``lum``); ``ordinary``: no brighter than a lit surface (module
+    docstring)."""
     t = rays.targets
-    if room is None or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth")):
-        return None, None, stats
-    found = mirror_rays(rays, max_rays=200000, seed=seed + 7)
-    if found is None:
-        return None, None, stats
-    x, r, index = found
-    sharp = t["roughness"][index].reshape(-1) < CLOSE_ROUGHNESS
+    if glossy:
+        pick = rays.mask & (t["roughness"][..., 0] < GLOSSY_ROUGHNESS) & (t["f0"].mean(-1) > GLOSSY_F0)
+        index = torch.nonzero(pick).reshape(-1)
+        index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(seed + 7))[:MAX_RAYS]]
+        d = rays.dirs[index]
+        nrm = torch.nn.functional.normalize(t["normal"][index], dim=-1)
+        x = rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
+        r = torch.nn.functional.normalize(d - 2 * (d * nrm).sum(-1, keepdim=True) * nrm, dim=-1)
+    else:
+        found = mirror_rays(rays, max_rays=MAX_RAYS, seed=seed + 7)
+        if found is None:
+            return None
+        x, r, index = found
+        keep = t["roughness"][index].reshape(-1) < CLOSE_ROUGHNESS
+        x, r, index = x[keep], r[keep], index[keep]
     lo, hi, step = scene_box(gaussians)
-    sharp &= ((x > lo) & (x < hi)).all(-1)
-    x, r, index = x[sharp], r[sharp], index[sharp]
+    inside = ((x > lo) & (x < hi)).all(-1)
+    x, r, index = x[inside], r[inside], index[inside]
     if len(index) < MIN_SUPPORT:
-        return None, None, stats
+        return None
     open_ = trace_fn(x + step * r, r, gaussians).transmittance.reshape(-1) > 0.5
     x, r, index = x[open_], r[open_], index[open_]
-    stats["rays"] = int(len(index))
     if len(index) < MIN_SUPPORT:
-        return None, None, stats
+        return {"rays": int(len(index))}
     d = rays.dirs[index].double()
     normal = torch.nn.functional.normalize(t["normal"][index].double(), dim=-1)
     cos = (d * normal).sum(-1).abs().clamp(0.0, 1.0)
@@ -126,18 +142,22 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
     # than HIGHLIGHT_BRIGHTNESS x the brightest lit surface the views see (a lamp on the demo's ceiling, in the
     # wall's colour and as the highlight fill's emitters too, was lit twice: its glossy box -1.5 dB)
     ordinary = np.expm1(lum) <= HIGHLIGHT_BRIGHTNESS * diffuse_level(rays, torch.Generator().manual_seed(seed))
-    x, r = x.double().numpy(), r.double().numpy()
-    view = rays.view_of_ray[index].numpy()
+    return {"rays": int(len(index)), "x": x.double().numpy(), "r": r.double().numpy(), "lum": lum,
+            "radiance": radiance.numpy(), "ordinary": ordinary, "view": rays.view_of_ray[index].numpy()}
+
+
+def _box_corners(lo, hi) -> np.ndarray:
+    return np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+
+
+def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls: list, described: list,
+                 stats: dict, max_walls: int, label: str) -> np.ndarray:
+    """Close ``sides`` (removed from the list as they close) one at a time, the clearest first, with the
+    reflections ``refl``: each wall found goes to ``walls`` and joins ``room.bound``; returns the box carried out
+    to the walls."""
+    x, r, lum, view = refl["x"], refl["r"], refl["lum"], refl["view"]
     size = float((room.hi - room.lo).max())
     cell = size / CELLS
-    box_corners = lambda lo, hi: np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])  # noqa: E731
-                                          for c in (lo[2], hi[2])])
-    corners = box_corners(room.lo, room.hi)
-    normals = [n for n, _, _ in room.bound]
-    sides = [n for n in normals if not any(float(m @ n) < OPPOSITE for m in normals)]
-    if known is not None and len(known) >= 10:
-        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
-    walls, described = [], []
     while sides and len(walls) < max_walls:
         best = None
         bounds = [(n, dd) for n, dd, _ in room.bound]
@@ -159,7 +179,7 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
             where = ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
             if i >= np.nonzero(valid)[0][-1] - 1:
                 stats["notes"].append(f"room closing: the open side {where} agrees best at the far edge of its "
-                                      f"sweep ({SWEEP[-1]:g}x the room's size): left open (the far field)")
+                                      f"sweep ({SWEEP[-1]:g}x the room's size){label}: left open (the far field)")
                 continue
             if ratio > MAX_RATIO:
                 continue
@@ -168,21 +188,56 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
         if best is None:
             break
         ratio, n, s, face, where, support = best
-        sides = [m for m in sides if m is not n]
+        sides[:] = [m for m in sides if m is not n]
         going = r @ n > 0.05
         _, _, landed = _score(x[going], r[going], lum[going], view[going], n, s, bounds, room.tol, cell)
         tt = (s - x[going] @ n) / (r[going] @ n)
-        keep = landed & ordinary[going]
+        keep = landed & refl["ordinary"][going]
         points = (x[going] + tt[:, None] * r[going])[keep]
-        colours = radiance.numpy()[going][keep]
+        colours = refl["radiance"][going][keep]
         if len(points) < 16:
-            points, colours = (x[going] + tt[:, None] * r[going])[landed], radiance.numpy()[going][landed]
+            points, colours = (x[going] + tt[:, None] * r[going])[landed], refl["radiance"][going][landed]
         walls.append((n, s, points, colours))
         room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))  # the wall faces back into the room
         grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])  # the box reaches the wall
-        corners = box_corners(grown.min(0), grown.max(0))
+        corners = _box_corners(grown.min(0), grown.max(0))
         described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
-                         f"the far end's)")
+                         f"the far end's{label})")
+    return corners
+
+
+@torch.no_grad()
+def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: int = 20000, opacity: float = 0.9,
+               known: np.ndarray | None = None, max_walls: int = 3, seed: int = 0,
+               dtype=torch.float32) -> tuple[Gaussians | None, np.ndarray | None, dict]:
+    """Walls on the room's open sides where sharp reflections agree on them, then, on the sides still open, where
+    glossy ones do (module docstring). ``room``: the plane fill's (its bounding planes grow by the walls placed);
+    ``gaussians``: the warmed-up scene with what the other fills placed (which reflections are still open);
+    ``known``: points mirror stereo placed (a side they reach, the box's face there set by them, is known: not
+    swept -- an object seen only in a planar mirror made its depth the sweep's minimum, and a wall across the whole
+    room there: mirror_book's book). Returns (Gaussians or None, the walls' points [M, 3] or None, statistics:
+    ``walls`` (a description), ``added``, ``rays`` (the sharp pass's open reflections), ``glossy_rays`` (the glossy
+    pass's; 0 when it did not run), ``notes``)."""
+    stats = {"walls": "none", "added": 0, "rays": 0, "glossy_rays": 0, "notes": []}
+    t = rays.targets
+    if room is None or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth")):
+        return None, None, stats
+    corners = _box_corners(room.lo, room.hi)
+    normals = [n for n, _, _ in room.bound]
+    sides = [n for n in normals if not any(float(m @ n) < OPPOSITE for m in normals)]
+    if known is not None and len(known) >= 10:
+        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
+    walls, described = [], []
+    for glossy in (False, True):
+        if not sides or len(walls) >= max_walls:
+            break
+        refl = _reflections(rays, trace_fn, gaussians, glossy, seed)
+        if refl is not None:
+            stats["glossy_rays" if glossy else "rays"] = refl["rays"]
+        if refl is None or "x" not in refl:
+            continue
+        corners = _sweep_sides(refl, sides, room, corners, walls, described, stats, max_walls,
+                               ", glossy reflections" if glossy else "")
     if not walls:
         return None, None, stats
     stats["walls"] = "; ".join(described)
@@ -204,7 +259,11 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
             break
         h *= math.sqrt(sum(len(g) for g in grids) / count) * 1.05
     parts, all_points = [], []
-    rough, f0 = matte_material(gaussians)  # what the room's ordinary surfaces are made of
+    # the roughness of the room's ordinary surfaces, and F0 0: nothing supervises a wall no view sees (the G-buffer
+    # loss needs a view of it), and the room's typical F0 (its floor's, often) reflected the window and the lamps
+    # off zoo_thin's closed ceiling, which reflects nothing (specular 28.03 -> 22.88 dB); F0 = 0 reflects nothing
+    # (F90 follows F0), and the room's reflections of the wall still train its colour
+    rough, f0 = matte_material(gaussians)[0], 0.0
     for (n, s, points, colours), g in zip(walls, grids):
         if not len(g):
             continue

@@ -490,7 +490,8 @@ class Trainer:
                 wall, points, stats = close_room(self._room, self.rays, self.backend.trace, seen,
                                                  cfg.plane_fill_count, known=shown, seed=cfg.seed)
                 walls = (wall, stats, "%(added)d Gaussians on walls no training view looks at, placed where "
-                         "%(rays)d open sharp reflections agree on them: %(walls)s")
+                         "%(rays)d open sharp reflections (then, on the sides still open, %(glossy_rays)d glossy "
+                         "ones) agree on them: %(walls)s")
                 if points is not None:
                     closed = extend_plane_fill(self._room, self.rays, points, cfg.plane_fill_count)
             placed = [w[0] for w in (walls, grown, closed) if w is not None]
