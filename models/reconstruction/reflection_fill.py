@@ -99,14 +99,16 @@ def diffuse_level(rays, gen: torch.Generator) -> float:
     return max(float(torch.quantile(t["diffuse"][direct] @ lum, 0.99)) if len(direct) else 0.0, 1e-6)
 
 
-def mirror_rays(rays, max_rays: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+def mirror_rays(rays, max_rays: int, seed: int = 0,
+                select=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """(points on the mirrors [M, 3], unit reflected directions [M, 3], ray indices [M]) for up to
     ``max_rays`` random mirror-like training pixels (from the depth / normal / F0 / roughness buffers), or
-    None when the capture lacks those buffers or has no such pixel."""
+    None when the capture lacks those buffers or has no such pixel. ``select(f0, roughness)``: other pixels than
+    the mirror-like ones (``shiny``)."""
     t = rays.targets
     if not all(k in t for k in ("depth", "normal", "f0", "roughness")):
         return None
-    index = torch.nonzero(rays.mask & shiny(t["f0"], t["roughness"])).reshape(-1)
+    index = torch.nonzero(rays.mask & (select or shiny)(t["f0"], t["roughness"])).reshape(-1)
     if len(index) == 0:
         return None
     index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(seed))[:max_rays]]

@@ -22,12 +22,13 @@ cameras, true 0.26.)
 Sides the sharp reflections leave open (too few of them, or no clear minimum) are swept again with GLOSSY ones:
 every pixel below ``GLOSSY_ROUGHNESS`` (0.4) whose F0 is above ``GLOSSY_F0`` (a varnished floor, F0 ~0.03, too).
 Blurred, they still point: a ceiling whose lights the floor reflects is where the floor's reflections from
-different views agree. (Checked on trained models' scenes, offline: held-out probe_338, cameras look down from 1.7-1.85 m, the ceiling is in no frame and in
-two small mirror cubes only: 34 open sharp reflections, no wall; the floor at roughness 0.34 placed the ceiling
-0.91 above the box, true 0.89. probe_376: 0.54, true 0.56. zoo_thin, whose ceiling no view sees: 0.12, true
-0.18. The demo keeps its sharp ceiling: with glossy reflections in the same pass its +y side agreed best at the
-far edge.) Reflections with Monte Carlo noise mislead the glossy pass more than the sharp one (probe_338 at 4 spp
-without the denoiser: 0.34 m low; denoised, 0.08).
+different views agree. (Checked on trained models' scenes, offline: held-out probe_338, cameras look down from
+1.7-1.85 m, the ceiling is in no frame and in two small mirror cubes only: 34 open sharp reflections, no wall;
+the floor at roughness 0.34 placed the ceiling 0.91 above the box, true 0.89. probe_376: 0.54, true 0.56.
+zoo_thin, whose ceiling no view sees: 0.12, true 0.18. The demo keeps its sharp ceiling: with glossy reflections
+in the same pass its +y side agreed best at the far edge. In training: probe_338 0.91, zoo_thin 0.15.)
+Reflections with Monte Carlo noise mislead the glossy pass more than the sharp one (probe_338 at 4 spp without
+the denoiser: 0.34 m low; denoised, 0.08).
 
 A wall is placed only when the minimum is inside the sweep, holds ``MIN_SUPPORT`` (cell, view) pairs, and is at
 most ``MAX_RATIO`` of the score at the far end of the sweep (the far field is the alternative: a window or an
@@ -108,19 +109,12 @@ def _reflections(rays, trace_fn, gaussians: Gaussians, glossy: bool, seed: int) 
     ``specular / Fresnel(F0)`` (log luminance ``lum``); ``ordinary``: no brighter than a lit surface (module
     docstring)."""
     t = rays.targets
-    if glossy:
-        pick = rays.mask & (t["roughness"][..., 0] < GLOSSY_ROUGHNESS) & (t["f0"].mean(-1) > GLOSSY_F0)
-        index = torch.nonzero(pick).reshape(-1)
-        index = index[torch.randperm(len(index), generator=torch.Generator().manual_seed(seed + 7))[:MAX_RAYS]]
-        d = rays.dirs[index]
-        nrm = torch.nn.functional.normalize(t["normal"][index], dim=-1)
-        x = rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
-        r = torch.nn.functional.normalize(d - 2 * (d * nrm).sum(-1, keepdim=True) * nrm, dim=-1)
-    else:
-        found = mirror_rays(rays, max_rays=MAX_RAYS, seed=seed + 7)
-        if found is None:
-            return None
-        x, r, index = found
+    select = (lambda f0, rough: (rough[..., 0] < GLOSSY_ROUGHNESS) & (f0.mean(-1) > GLOSSY_F0)) if glossy else None
+    found = mirror_rays(rays, max_rays=MAX_RAYS, seed=seed + 7, select=select)
+    if found is None:
+        return None
+    x, r, index = found
+    if not glossy:
         keep = t["roughness"][index].reshape(-1) < CLOSE_ROUGHNESS
         x, r, index = x[keep], r[keep], index[keep]
     lo, hi, step = scene_box(gaussians)
