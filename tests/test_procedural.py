@@ -147,5 +147,11 @@ def test_probe_rooms_look_where_the_training_orbit_does_not(tmp_path, capsys):
     assert cfg == probe_scene(338) and "stages.synth probe 338" in (tmp_path / "probe_338.yaml").read_text()
     committed = load_config("probe_338")  # the one in configs/scenes: what the README's numbers ran
     assert committed["synth"] == probe_scene(338)["synth"]
-    assert main(["probe", "338", "--out-dir", str(tmp_path)]) == 1
-    assert "exists (--force overwrites it)" in capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["probe", "376", "338", "--out-dir", str(tmp_path)]) == 1  # one exists: none is written
+    assert "probe_338.yaml exist(s) (--force overwrites)" in capsys.readouterr().err
+    assert not (tmp_path / "probe_376.yaml").exists()
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert main(["probe", "338", "--out-dir", str(blocked / "sub")]) == 1
+    assert "error: cannot write" in capsys.readouterr().err

@@ -81,14 +81,21 @@ def probe_main(argv: list[str]) -> int:
             if probe_worthy(random_scene_config(s)):
                 seeds.append(s)
             s += 1
-    for seed in seeds:
-        doc = probe_scene(seed)
-        path = args.out_dir / f"{doc['scene']}.yaml"
-        if path.exists() and not args.force:
-            print(f"error: {path} exists (--force overwrites it)", file=sys.stderr)
+    docs = [probe_scene(seed) for seed in seeds]
+    paths = [args.out_dir / f"{doc['scene']}.yaml" for doc in docs]
+    taken = [str(path) for path in paths if path.exists()]
+    if taken and not args.force:  # checked before writing any: nothing half done
+        print(f"error: {', '.join(taken)} exist(s) (--force overwrites)", file=sys.stderr)
+        return 1
+    for seed, doc, path in zip(seeds, docs, paths):
+        text = PROBE_HEADER.format(seed=seed, scene=doc["scene"]) + yaml.safe_dump(
+            doc, sort_keys=False, default_flow_style=None, width=118)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+        except OSError as e:
+            print(f"error: cannot write {path}: {e.strerror or e}", file=sys.stderr)
             return 1
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(PROBE_HEADER.format(seed=seed, scene=doc["scene"]) + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=118))
         print(f"wrote {path} (snakemake --cores 2 --config scene={doc['scene']})")
     return 0
 
