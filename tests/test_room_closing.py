@@ -116,7 +116,7 @@ def test_lights_placed_beyond_a_wall_move_in_front_of_it(spheres):
 @pytest.fixture(scope="module")
 def probe_338(tmp_path_factory):
     """The held-out probe room 338, small: 20 cameras at 1.7-1.85 m look down at the room's middle; its ceiling
-    (y = 2.733) and two lights on it are in no training frame, only in two mirror cubes (their sharp reflections
+    (y = 2.733) and the light on it are in no training frame, only in two mirror cubes (their sharp reflections
     agree on no wall) and in the glossy floor (roughness 0.34, F0 ~0.03) and a glossy cube."""
     cfg = load_config("probe_338", presets=["ci"],  # 16 spp, denoised (at 4 spp, not denoised: 0.34 m low)
                       overrides={"synth": {"resolution": [128, 96], "spp": 16, "denoise": True,
