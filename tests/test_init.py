@@ -47,6 +47,30 @@ def test_dense_init_plane():
     assert torch.all(g.roughness == 0.1) and torch.all(g.f0 == 0.04) and torch.all(g.normals == 0)
 
 
+def test_flatten_makes_discs_in_the_plane_the_normal_buffer_gives():
+    """``flatten`` < 1: a voxel whose samples agree on a normal starts as a disc in that plane (local z along the
+    normal, thickness flatten x width); without a normal buffer, or at flatten 1, the reference's spheres."""
+    from models.gaussians.activations import quats_to_rotmats
+
+    cap = plane_capture()
+    tilt = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])  # a normal buffer tilted off the plane's
+    for v in cap.views:
+        v.buffers["normal"] = np.broadcast_to(tilt, v.buffers["depth"].shape[:2] + (3,)).astype(np.float32).copy()
+    sphere, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40))
+    disc, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40, flatten=0.25))
+    assert torch.equal(sphere.means, disc.means) and torch.equal(sphere.log_scales[:, 0], disc.log_scales[:, 0])
+    assert torch.equal(sphere.quats, torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand_as(sphere.quats))
+    ratio = (disc.log_scales[:, 2] - disc.log_scales[:, 0]).exp()
+    assert torch.allclose(ratio, torch.tensor(0.25), atol=1e-6)
+    z_axis = quats_to_rotmats(disc.quats)[:, :, 2]
+    assert torch.allclose(z_axis, torch.tensor(tilt, dtype=torch.float32).expand_as(z_axis), atol=1e-6)
+    for v in cap.views:  # normals that disagree (a corner, an edge): the voxel stays a sphere
+        v.buffers["normal"][:, ::2] *= -1
+    mixed, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40, flatten=0.25))
+    round_ = (mixed.log_scales[:, 2] == mixed.log_scales[:, 0])
+    assert 0 < int(round_.sum()) < len(mixed)
+
+
 def test_min_samples_and_mask():
     cap = plane_capture()
     for v in cap.views:
@@ -74,6 +98,15 @@ def test_cli_writes_ply(tmp_path):
     g = read_ply(tmp_path / "init/points.ply")
     assert len(g) > 50 and (tmp_path / "init/stage.json").is_file()
     assert init_main(["--capture", str(tmp_path / "nope"), "--out", str(tmp_path / "x")]) == 1
+    # flatten < 1: the stage reads the normal buffer too (it read only depth / diffuse / emission / mask)
+    cap = plane_capture()
+    for v in cap.views:
+        v.buffers["normal"] = np.broadcast_to(np.float32([0, 0, 1]), v.buffers["depth"].shape[:2] + (3,)).copy()
+    write_capture(cap, tmp_path / "cap_n")
+    assert init_main(["--capture", str(tmp_path / "cap_n"), "--out", str(tmp_path / "init_n"),
+                      "--config-json", '{"resolution": 40, "voxel_fraction": 0.025, "flatten": 0.5}']) == 0
+    g = read_ply(tmp_path / "init_n/points.ply")
+    assert torch.allclose((g.log_scales[:, 2] - g.log_scales[:, 0]).exp(), torch.tensor(0.5), atol=1e-5)
 
 
 def test_coarse_levels_fill_surfaces_seen_from_far_and_still_drop_lone_samples():

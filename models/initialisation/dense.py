@@ -14,6 +14,12 @@ dropped samples are voxelised again at 2x, 4x, 8x the voxel, and a coarse voxel 
 samples gets a Gaussian where no Gaussian lies within 1.5 of its edge (a hole, not a sparse patch of a
 covered surface): the agreement of two samples still decides, at the footprint's scale.
 
+Discs (``flatten`` < 1, not in the reference; off by default): a Gaussian whose voxel's samples agree on a normal
+(the normal buffer's, averaged with the colour; the mean at least 0.9 long) starts as a disc in that plane, its
+thickness ``flatten`` x its width, instead of a sphere. A sphere on a wall or a window reaches past the surface's
+outline by its radius and shows it to views the training ones do not share (zoo_lshape: a window's Gaussians up
+to 0.33 m across, spilling its light onto the wall round it in the test views).
+
 "The scene" size is the largest side of the bounding box of the unprojected
 points between their 1st and 99th percentiles (robust to stray far samples).
 """
@@ -54,13 +60,18 @@ class InitConfig:
     source: str = setting("auto", "auto: depth + diffuse buffers when every training view has them, else SfM "
                           "points | depth | sfm", enum=["auto", "depth", "sfm"])
 
+    flatten: float = setting(1.0, "a Gaussian whose voxel's samples agree on a normal (the normal buffer's; their "
+                             "mean at least 0.9 long) starts as a disc in that plane, its thickness this x its "
+                             "width; 1 = the reference's spheres", minimum=0.01, maximum=1.0)
+
     @classmethod
     def from_dict(cls, d: dict) -> "InitConfig":
         return from_dict(cls, d, "init")
 
 
 def _sample_view(view: View, resolution: int) -> tuple[np.ndarray, np.ndarray]:
-    """World points [M, 3] and diffuse colours [M, 3] of one view on a low-resolution pixel grid."""
+    """World points [M, 3] and diffuse colours + normals [M, 6] of one view on a low-resolution pixel grid (normals
+    0 without a normal buffer)."""
     cam = view.camera
     for layer in ("depth", "diffuse"):
         if layer not in view.buffers:
@@ -78,11 +89,20 @@ def _sample_view(view: View, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     if "mask" in view.buffers:
         valid &= view.buffers["mask"][np.ix_(ys, xs)][..., 0] > 0.5
     points = cam.origin + dirs[valid] * depth[valid, None]
-    return points, colour[valid]
+    if "normal" in view.buffers:  # carried with the colour (voxel means): the discs' planes (InitConfig.flatten)
+        normal = view.buffers["normal"][np.ix_(ys, xs)][..., :3].astype(np.float64)
+    else:
+        normal = np.zeros_like(colour)
+    return points, np.concatenate([colour, normal], -1)[valid]
 
 
 def unproject_views(views: list[View], resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """Unprojected points [M, 3] and diffuse colours [M, 3] of all ``views``."""
+    points, attrs = _unproject(views, resolution)
+    return points, attrs[:, :3]
+
+
+def _unproject(views: list[View], resolution: int) -> tuple[np.ndarray, np.ndarray]:
     samples = [_sample_view(v, resolution) for v in views]
     return np.concatenate([s[0] for s in samples]), np.concatenate([s[1] for s in samples])
 
@@ -92,7 +112,7 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
     train = capture.split("train")
     if not train:
         raise CaptureError("capture has no training views")
-    points, colours = unproject_views(train, config.resolution)
+    points, colours = _unproject(train, config.resolution)  # colour + normal: averaged per voxel alike
     if len(points) < 4:
         raise CaptureError(f"dense init: only {len(points)} valid depth samples in {len(train)} training views")
     lo, hi = np.percentile(points, [1, 99], axis=0)
@@ -119,7 +139,7 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
             f"dense init: only {len(means)} voxels hold >= {config.min_samples} samples "
             f"(voxel {voxel:.4g}); lower voxel_fraction or raise resolution"
         )
-    gaussians, scale = gaussians_from_points(means, diffuse, config)
+    gaussians, scale = gaussians_from_points(means, diffuse[:, :3], config, normals=diffuse[:, 3:])
     n = len(means)
     summary = {
         "views": len(train),
@@ -140,26 +160,42 @@ def _voxelise(points: np.ndarray, colours: np.ndarray, lo: np.ndarray, voxel: fl
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     pos = np.zeros((len(counts), 3))
-    col = np.zeros((len(counts), 3))
+    col = np.zeros((len(counts), colours.shape[1]))
     np.add.at(pos, inverse, points)
     np.add.at(col, inverse, colours)
     return pos / counts[:, None], col / counts[:, None], counts, inverse
 
 
-def gaussians_from_points(means: np.ndarray, diffuse: np.ndarray, config: InitConfig) -> tuple[Gaussians, np.ndarray]:
+def gaussians_from_points(means: np.ndarray, diffuse: np.ndarray, config: InitConfig,
+                          normals: np.ndarray | None = None) -> tuple[Gaussians, np.ndarray]:
     """One isotropic Gaussian per point (the reference defaults): scale = sqrt(mean squared distance to the
     3 nearest neighbours) x ``scale_factor``, opacity / roughness / F0 from ``config``, normal 0, identity
-    rotation, diffuse = ``diffuse`` (clamped >= 0). ``means``, ``diffuse``: [N, 3]. Returns (Gaussians, scale [N])."""
+    rotation, diffuse = ``diffuse`` (clamped >= 0). ``means``, ``diffuse``: [N, 3]. With ``config.flatten`` < 1 and
+    ``normals`` [N, 3] (the mean of each voxel's buffer normals), a Gaussian whose mean normal is at least 0.9 long
+    is a disc in its plane instead: its local z axis along the normal, that axis ``flatten`` x the scale.
+    Returns (Gaussians, scale [N])."""
     dist, _ = cKDTree(means).query(means, k=4)  # first neighbour is the point itself
     scale = np.sqrt(np.mean(dist[:, 1:] ** 2, axis=1)) * config.scale_factor
     scale = np.maximum(scale, 1e-7)
     n = len(means)
     f32 = dict(dtype=torch.float32)
     logit = float(np.log(config.opacity / (1 - config.opacity)))
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    log_scales = np.repeat(np.log(scale)[:, None], 3, axis=1)
+    if normals is not None and config.flatten < 1.0:
+        length = np.linalg.norm(normals, axis=1)
+        flat = length >= 0.9
+        nz = normals[flat] / length[flat, None]
+        # the rotation taking e_z to the normal: axis e_z x n, (w, x, y, z) = (1 + n_z, -n_y, n_x, 0) normalised;
+        # n = -e_z (w = 0) turns about x
+        q = np.stack([1.0 + nz[:, 2], -nz[:, 1], nz[:, 0], np.zeros(len(nz))], 1)
+        q[q[:, 0] < 1e-6] = [0.0, 1.0, 0.0, 0.0]
+        quats[flat] = q / np.linalg.norm(q, axis=1, keepdims=True)
+        log_scales[flat, 2] += np.log(config.flatten)
     gaussians = Gaussians(
         means=torch.tensor(means, **f32),
-        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]], **f32).repeat(n, 1),
-        log_scales=torch.tensor(np.log(scale), **f32)[:, None].repeat(1, 3),
+        quats=torch.tensor(quats, **f32),
+        log_scales=torch.tensor(log_scales, **f32),
         opacity_logits=torch.full((n,), logit, **f32),
         diffuse=torch.tensor(np.maximum(diffuse, 0.0), **f32),
         normals=torch.zeros((n, 3), **f32),

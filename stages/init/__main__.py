@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
         section = load_section(args, "init")
         config = InitConfig.from_dict(section)
         start = time.perf_counter()
-        capture = read_capture(args.capture, layers=["depth", "diffuse", "emission", "mask"])
+        layers = ["depth", "diffuse", "emission", "mask"] + (["normal"] if config.flatten < 1.0 else [])
+        capture = read_capture(args.capture, layers=layers)
         gaussians, summary = initialise(capture, args.capture, config)
     except (CaptureError, ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
