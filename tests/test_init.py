@@ -57,7 +57,8 @@ def test_flatten_makes_discs_in_the_plane_the_normal_buffer_gives():
     for v in cap.views:
         v.buffers["normal"] = np.broadcast_to(tilt, v.buffers["depth"].shape[:2] + (3,)).astype(np.float32).copy()
     sphere, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40))
-    disc, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40, flatten=0.25))
+    disc, summary = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40, flatten=0.25))
+    assert summary["discs"] == len(disc)
     assert torch.equal(sphere.means, disc.means) and torch.equal(sphere.log_scales[:, 0], disc.log_scales[:, 0])
     assert torch.equal(sphere.quats, torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand_as(sphere.quats))
     ratio = (disc.log_scales[:, 2] - disc.log_scales[:, 0]).exp()
@@ -90,7 +91,7 @@ def test_errors_name_problem():
         InitConfig.from_dict({"voxel": 0.1})
 
 
-def test_cli_writes_ply(tmp_path):
+def test_cli_writes_ply(tmp_path, caplog):
     write_capture(plane_capture(), tmp_path / "cap")
     rc = init_main(["--capture", str(tmp_path / "cap"), "--out", str(tmp_path / "init"),
                     "--config-json", '{"resolution": 40, "voxel_fraction": 0.025}'])
@@ -98,6 +99,11 @@ def test_cli_writes_ply(tmp_path):
     g = read_ply(tmp_path / "init/points.ply")
     assert len(g) > 50 and (tmp_path / "init/stage.json").is_file()
     assert init_main(["--capture", str(tmp_path / "nope"), "--out", str(tmp_path / "x")]) == 1
+    # flatten < 1 on a capture without normals: spheres, and the log says why
+    with caplog.at_level("WARNING"):
+        assert init_main(["--capture", str(tmp_path / "cap"), "--out", str(tmp_path / "init_s"),
+                          "--config-json", '{"resolution": 40, "voxel_fraction": 0.025, "flatten": 0.5}']) == 0
+    assert "none made: the capture has no normal buffer" in caplog.text
     # flatten < 1: the stage reads the normal buffer too (it read only depth / diffuse / emission / mask)
     cap = plane_capture()
     for v in cap.views:

@@ -112,26 +112,26 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
     train = capture.split("train")
     if not train:
         raise CaptureError("capture has no training views")
-    points, colours = _unproject(train, config.resolution)  # colour + normal: averaged per voxel alike
+    points, attrs = _unproject(train, config.resolution)  # [M, 6]: colour + normal, averaged per voxel alike
     if len(points) < 4:
         raise CaptureError(f"dense init: only {len(points)} valid depth samples in {len(train)} training views")
     lo, hi = np.percentile(points, [1, 99], axis=0)
     scene_size = float((hi - lo).max())
     voxel = scene_size * config.voxel_fraction
-    mean_pos, mean_col, counts, inverse = _voxelise(points, colours, lo, voxel)
+    mean_pos, mean_attrs, counts, inverse = _voxelise(points, attrs, lo, voxel)
     n_vox = len(counts)
     keep = counts >= config.min_samples
-    means, diffuse = mean_pos[keep], mean_col[keep]
+    means, voxel_attrs = mean_pos[keep], mean_attrs[keep]
     coarse = []
     rest = ~keep[inverse]  # the samples the recipe drops
     for level in range(1, config.coarse_levels + 1):
         if not rest.any() or not len(means):
             break
         size = voxel * 2 ** level
-        pos, col, cnt, inv = _voxelise(points[rest], colours[rest], lo, size)
+        pos, col, cnt, inv = _voxelise(points[rest], attrs[rest], lo, size)
         ok = cnt >= config.min_samples
         hole = ok & (cKDTree(means).query(pos, distance_upper_bound=1.5 * size)[0] > 1.5 * size)
-        means, diffuse = np.concatenate([means, pos[hole]]), np.concatenate([diffuse, col[hole]])
+        means, voxel_attrs = np.concatenate([means, pos[hole]]), np.concatenate([voxel_attrs, col[hole]])
         coarse.append(int(hole.sum()))
         rest[np.flatnonzero(rest)[ok[inv]]] = False
     if len(means) < 4:
@@ -139,7 +139,7 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
             f"dense init: only {len(means)} voxels hold >= {config.min_samples} samples "
             f"(voxel {voxel:.4g}); lower voxel_fraction or raise resolution"
         )
-    gaussians, scale = gaussians_from_points(means, diffuse[:, :3], config, normals=diffuse[:, 3:])
+    gaussians, scale = gaussians_from_points(means, voxel_attrs[:, :3], config, normals=voxel_attrs[:, 3:])
     n = len(means)
     summary = {
         "views": len(train),
@@ -150,6 +150,8 @@ def dense_init(capture: Capture, config: InitConfig = InitConfig()) -> tuple[Gau
         "gaussians": int(n),
         "coarse": coarse,  # Gaussians added at 2x, 4x, ... the voxel (holes of surfaces seen from far)
         "median_scale": float(np.median(scale)),
+        # discs (flatten < 1): 0 when the capture has no normal buffer or its normals never agree
+        "discs": int((gaussians.log_scales[:, 2] < gaussians.log_scales[:, 0]).sum()),
     }
     return gaussians, summary
 

@@ -46,6 +46,10 @@ def main(argv: list[str] | None = None) -> int:
     log.info("%s", summary.get("decision"))
     log.info("init: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in summary.items() if k != "decision"))
+    if config.flatten < 1.0 and not summary.get("discs"):
+        log.warning("init.flatten %g asked for discs, none made: %s", config.flatten,
+                    "the capture has no normal buffer" if not any("normal" in v.buffers for v in capture.views)
+                    else "no voxel's normals agree")
     with staged_folder(args.out) as out:
         write_ply(out / "points.ply", gaussians)
         write_stage_json(out, "init", section, time.perf_counter() - start, extra={"summary": summary})
