@@ -128,3 +128,45 @@ def test_capture_x1e4_scores_as_at_x1_and_flags_the_clamped_scores(tmp_path):
     flagged = {f["layer"] for f in big["saturated"]}
     assert flagged == {"diffuse", "specular", "final"}
     assert not any(f["layer"] in ("diffuse", "final") for f in one["saturated"])
+
+
+def test_seen_mask_is_what_a_training_camera_sees_directly(tmp_path):
+    """A test pixel is 'seen' when its surface point projects into a training view whose depth buffer has that
+    surface there; an occluder in front of every training camera makes every pixel unseen; the seen / unseen
+    scores split the error where it is."""
+    from models.metrics.scoring import seen_mask
+
+    cap = plane_capture()
+    for v in cap.views:
+        v.buffers["specular"] = 0.2 * v.buffers["diffuse"]
+    test, train = cap.split("test")[0], cap.split("train")
+    seen, surface = seen_mask(test, train)
+    assert surface.all()
+    points = (test.camera.origin + test.camera.ray_directions() * test.buffers["depth"]).reshape(-1, 3)
+    margin = np.full(len(points), -np.inf)  # how far inside a training image each point lands, best view
+    for t in train:
+        u, v, z = t.camera.project(points)
+        inside = np.minimum.reduce([u, t.camera.width - u, v, t.camera.height - v])
+        margin = np.maximum(margin, np.where(z > 0, inside, -np.inf))
+    margin = margin.reshape(seen.shape)
+    assert (margin > 2).any() and (margin < -2).any()  # the test view sees beyond the training views
+    assert seen[margin > 2].all() and not seen[margin < -2].any()
+
+    for t in train:  # something in front of every training camera: nothing the test view shows is seen
+        t.buffers["depth"] = 0.5 * t.buffers["depth"]
+    seen_hidden, _ = seen_mask(test, train)
+    assert not seen_hidden.any()
+    for t in train:
+        t.buffers["depth"] = 2.0 * t.buffers["depth"]
+
+    diffuse = test.buffers["diffuse"].copy()
+    diffuse[~seen] += 0.1  # wrong only where no training camera looked
+    _write_render(tmp_path, test.name, diffuse, test.buffers["specular"], diffuse + test.buffers["specular"])
+    m = evaluate_renders(cap, tmp_path)["views"][test.name]
+    assert m["seen_fraction"] == pytest.approx(seen.mean())
+    assert m["seen_psnr_final_tonemapped"] > 150 and m["unseen_psnr_final_tonemapped"] < 40
+    assert m["unseen_error_share_final"] == pytest.approx(1.0) and m["unseen_error_share_specular"] == 0.0
+    for t in train:  # no depth in the training views: nothing to test against, no seen scores
+        del t.buffers["depth"]
+    assert seen_mask(test, train) is None
+    assert "seen_fraction" not in evaluate_renders(cap, tmp_path)["views"][test.name]

@@ -62,6 +62,9 @@ def test_batch_report_tables(tiny_demo, tmp_path):
     for layer in ("diffuse", "specular", "final"):
         assert dom.count(f"{metrics[f'psnr_{layer}']:.2f}") >= 2  # both columns of the two scenes
     assert 'href="demo_copy/report.html"' in dom  # relative link to the scene's own report
+    # where the error is: the share of test pixels a training camera saw, and the final score on each part
+    assert "Where the error is" in dom and f"{100 * metrics['seen_fraction']:.1f}" in dom
+    assert f"{metrics['seen_psnr_final_tonemapped']:.2f}" in dom
 
 
 def test_batch_report_names_missing_scene(tmp_path):

@@ -53,6 +53,15 @@ DEFINITIONS = {
                                      "every view (the region scores before HDR-safe scoring were these)",
     "<region>_psnr_<layer>_tonemapped": "as psnr_<layer>_tonemapped (mu-law at the view's peak) on the region's "
                                         "pixels",
+    "seen_fraction": "share of the view's pixels whose ground-truth surface point a training camera sees directly "
+                     "(projected into each training view, its distance within 3 % of that view's depth buffer at "
+                     "one of the 3 x 3 nearest pixels); pixels with no surface (depth not finite or <= 0) are in "
+                     "neither part. Needs depth in the training views, else absent",
+    "<seen|unseen>_psnr_<layer>_tonemapped": "as psnr_<layer>_tonemapped on the pixels a training camera sees "
+                                             "directly / does not (seen_fraction): what cannot be learnt from the "
+                                             "training views but through reflections or priors",
+    "unseen_error_share_<layer>": "share of the view's tonemapped squared error (psnr_<layer>_tonemapped) on the "
+                                  "unseen pixels",
     "ssim": SSIM_DEFINITION,
     "saturated": f"views / layers where > {hdr.SATURATED_FRACTION:.0%} of ground-truth pixels exceed 1 (the clamped "
                  f"scores ignore errors there) or a PSNR is > {hdr.SATURATED_DB:.0f} dB or not finite",
@@ -102,9 +111,68 @@ def region_mask(view, box_min, box_max) -> np.ndarray:
     return inside
 
 
+SEEN_TOLERANCE = 0.03  # relative distance within which a training view's depth buffer counts as the same surface
+
+
+def seen_mask(view, train_views) -> tuple[np.ndarray, np.ndarray] | None:
+    """([H, W] bool seen, [H, W] bool has a surface) of a test ``view``: its ground-truth surface points (camera +
+    ray x depth) that some training view sees directly (projects inside it, in front, and its depth buffer at one
+    of the 3 x 3 pixels nearest the projection is within ``SEEN_TOLERANCE`` of the point's distance: a neighbour
+    keeps edges and grazing surfaces seen). None when a training view has no depth buffer (nothing to test)."""
+    if not train_views or any("depth" not in t.buffers for t in train_views):
+        return None
+    depth = view.buffers["depth"][..., 0].astype(np.float64)
+    surface = np.isfinite(depth) & (depth > 0)
+    points = (view.camera.origin + view.camera.ray_directions() * np.where(surface, depth, 0.0)[..., None])
+    points = points.reshape(-1, 3)
+    todo = surface.reshape(-1).copy()
+    seen = np.zeros(len(points), dtype=bool)
+    for t in train_views:
+        cam = t.camera
+        ref = t.buffers["depth"][..., 0].astype(np.float64)
+        idx = np.flatnonzero(todo & ~seen)
+        if not len(idx):
+            break
+        u, v, z = cam.project(points[idx])
+        dist = np.linalg.norm(points[idx] - cam.origin, axis=1)
+        front = z > 1e-9
+        iu, iv = np.floor(np.where(front, u, -10)).astype(np.int64), np.floor(np.where(front, v, -10)).astype(np.int64)
+        hit = np.zeros(len(idx), dtype=bool)
+        for du in (-1, 0, 1):
+            for dv in (-1, 0, 1):
+                cu, cv = iu + du, iv + dv
+                ok = front & (cu >= 0) & (cu < cam.width) & (cv >= 0) & (cv < cam.height)
+                r = np.full(len(idx), np.nan)
+                r[ok] = ref[cv[ok], cu[ok]]
+                with np.errstate(invalid="ignore"):
+                    hit |= ok & (np.abs(r - dist) <= SEEN_TOLERANCE * dist)
+        seen[idx[hit]] = True
+    return seen.reshape(depth.shape), surface
+
+
 LPIPS_OFF = ("not computed: LPIPS needs local weight files (nothing is downloaded); turn it on with evaluate.lpips: "
              "{backbone: <torchvision AlexNet state dict, alexnet-owt-7be5be79.pth>, lin: <the lpips package's "
              "weights/v0.1/alex.pth>} in the scene config, snakemake --config or stages.evaluate --config-json")
+
+
+def _seen_scores(view, train, pred: dict, gt: dict, peak: float) -> dict:
+    """seen_fraction, <seen|unseen>_psnr_<layer>_tonemapped, unseen_error_share_<layer> (``DEFINITIONS``) of a
+    test view; {} when the training views have no depth."""
+    masks = seen_mask(view, train)
+    if masks is None:
+        return {}
+    seen, surface = masks
+    unseen = surface & ~seen
+    row = {"seen_fraction": float(seen.sum() / max(surface.sum(), 1))}
+    for layer in SCORED:
+        mp, mt = hdr.mu_law(pred[layer], peak), hdr.mu_law(gt[layer], peak)
+        err = ((mp - mt) ** 2).mean(-1)
+        for name, m in (("seen", seen), ("unseen", unseen)):
+            if m.any():
+                row[f"{name}_psnr_{layer}_tonemapped"] = psnr(mp, mt, m)
+        total = float(err[surface].sum())
+        row[f"unseen_error_share_{layer}"] = float(err[unseen].sum() / total) if total > 0 else 0.0
+    return row
 
 
 def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = None,
@@ -115,6 +183,7 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
     something). ``lpips``:
     weights (``models.metrics.lpips.load_lpips``) to add ``lpips_<layer>`` on the clamped sRGB images."""
     per_view, saturated = {}, []
+    train = capture.split("train")
     for view in capture.split("test"):
         if lpips is not None and min(view.camera.height, view.camera.width) < LPIPS_MIN_SIZE:
             raise ValueError(f"LPIPS (AlexNet) needs views of at least {LPIPS_MIN_SIZE} x {LPIPS_MIN_SIZE} pixels; "
@@ -145,6 +214,8 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
                     row[f"{name}_psnr_{layer}_clamped"] = psnr(np.clip(pred[layer], 0, 1), np.clip(gt[layer], 0, 1), m)
                     row[f"{name}_psnr_{layer}_tonemapped"] = psnr(hdr.mu_law(pred[layer], row["peak"]),
                                                                   hdr.mu_law(gt[layer], row["peak"]), m)
+        if "depth" in view.buffers:
+            row.update(_seen_scores(view, train, pred, gt, row["peak"]))
         per_view[view.name] = row
     keys = dict.fromkeys(k for r in per_view.values() for k in r)
     mean = {k: float(np.mean([r[k] for r in per_view.values() if k in r])) for k in keys}

@@ -18,7 +18,9 @@ def main(argv: list[str] | None = None) -> int:
         "when the capture has an emission layer): linear at the view's peak (its ground-truth final image's maximum, "
         "the same for every layer), mu-law "
         "tonemapped (the headline), and, blind above 1, clamped and clamp + sRGB curve (as the PNGs); SSIM as 3DGS; "
-        "'saturated' lists scores that stopped measuring (models/metrics/scoring.py DEFINITIONS). Adds training "
+        "'saturated' lists scores that stopped measuring (models/metrics/scoring.py DEFINITIONS); where the training "
+        "views have depth, the tonemapped scores split into the pixels a training camera sees directly and the rest "
+        "(seen_fraction, <seen|unseen>_psnr_<layer>_tonemapped, unseen_error_share_<layer>). Adds training "
         "time, Gaussian count, peak memory and the training decisions from the model's stage.json, render time "
         "from the renders' stage.json, and render FPS at 1 spp (no denoiser). Writes <out> (metrics.json).",
     )
