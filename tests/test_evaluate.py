@@ -170,3 +170,17 @@ def test_seen_mask_is_what_a_training_camera_sees_directly(tmp_path):
         del t.buffers["depth"]
     assert seen_mask(test, train) is None
     assert "seen_fraction" not in evaluate_renders(cap, tmp_path)["views"][test.name]
+
+
+def test_true_layer_scores_name_the_layer_that_limits_the_final_image(tmp_path):
+    """psnr_final_tonemapped_true_<layer>: our final with the truth's layer in its place; a render whose specular
+    alone is wrong scores perfectly with the true specular and as itself with the true diffuse."""
+    cap = _lamp_capture()
+    test = cap.split("test")[0]
+    diffuse = test.buffers["diffuse"] + test.buffers["emission"]
+    specular = test.buffers["specular"] + 0.05
+    _write_render(tmp_path, test.name, diffuse, specular, diffuse + specular)
+    m = evaluate_renders(cap, tmp_path)["views"][test.name]
+    assert m["psnr_final_tonemapped_true_specular"] > 150
+    assert m["psnr_final_tonemapped_true_diffuse"] == pytest.approx(m["psnr_final_tonemapped"])
+    assert m["psnr_final_tonemapped"] < 40

@@ -65,6 +65,7 @@ def test_batch_report_tables(tiny_demo, tmp_path):
     # where the error is: the share of test pixels a training camera saw, and the final score on each part
     assert "Where the error is" in dom and f"{100 * metrics['seen_fraction']:.1f}" in dom
     assert f"{metrics['seen_psnr_final_tonemapped']:.2f}" in dom
+    assert f"{metrics['psnr_final_tonemapped_true_specular']:.2f}" in dom  # which layer limits it
 
 
 def test_batch_report_names_missing_scene(tmp_path):

@@ -62,6 +62,10 @@ DEFINITIONS = {
                                              "training views but through reflections or priors",
     "unseen_error_share_<layer>": "share of the view's tonemapped squared error (psnr_<layer>_tonemapped) on the "
                                   "unseen pixels",
+    "psnr_final_tonemapped_true_<diffuse|specular>": "what limits the final image: psnr_final_tonemapped of our "
+                                                     "render with the ground truth's diffuse (+ emission) / specular "
+                                                     "layer in place of ours; the layer whose truth lifts it most is "
+                                                     "the one to improve",
     "ssim": SSIM_DEFINITION,
     "saturated": f"views / layers where > {hdr.SATURATED_FRACTION:.0%} of ground-truth pixels exceed 1 (the clamped "
                  f"scores ignore errors there) or a PSNR is > {hdr.SATURATED_DB:.0f} dB or not finite",
@@ -205,6 +209,9 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
                                      scores[f"over1_{layer}"])
             if reasons:
                 saturated.append({"view": view.name, "layer": layer, "reasons": reasons})
+        for layer, other in (("diffuse", "specular"), ("specular", "diffuse")):
+            row[f"psnr_final_tonemapped_true_{layer}"] = psnr(hdr.mu_law(gt[layer] + pred[other], row["peak"]),
+                                                             hdr.mu_law(gt["final"], row["peak"]))
         for name, box in (regions or {}).items():
             m = region_mask(view, box["min"], box["max"])
             row[f"{name}_pixels"] = int(m.sum())

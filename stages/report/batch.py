@@ -63,23 +63,32 @@ def _photos_path_table(metrics: dict[str, dict]) -> str:
 
 def _seen_table(metrics: dict[str, dict]) -> str:
     """Per scene, where the test views' error is: on pixels a training camera sees directly or not
-    (metrics.json seen_fraction, <seen|unseen>_psnr_final_tonemapped, unseen_error_share_final)."""
-    names = [n for n in metrics if "seen_fraction" in metrics[n].get("mean", {})]
+    (metrics.json seen_fraction, <seen|unseen>_psnr_final_tonemapped, unseen_error_share_final), and the final
+    score with the true diffuse / specular layer in place of ours (which layer limits it)."""
+    keys = {"seen_fraction", "psnr_final_tonemapped_true_diffuse"}
+    names = [n for n in metrics if keys & set(metrics[n].get("mean", {}))]
     if not names:
         return ""
     rows = []
     for n in names:
         m = metrics[n]["mean"]
-        rows.append(f"<tr><td class=\"l\">{esc(n)}</td><td>{fmt(100 * m['seen_fraction'], 1)}</td>"
+        def pct(key: str, digits: int) -> str:
+            return fmt(100 * m[key], digits) if key in m else "–"
+        rows.append(f"<tr><td class=\"l\">{esc(n)}</td><td>{pct('seen_fraction', 1)}</td>"
                     f"<td>{fmt(m.get('psnr_final_tonemapped'))}</td><td>{fmt(m.get('seen_psnr_final_tonemapped'))}</td>"
                     f"<td>{fmt(m.get('unseen_psnr_final_tonemapped'))}</td>"
-                    f"<td>{fmt(100 * m.get('unseen_error_share_final', float('nan')), 0)}</td></tr>")
+                    f"<td>{pct('unseen_error_share_final', 0)}</td>"
+                    f"<td>{fmt(m.get('psnr_final_tonemapped_true_diffuse'))}</td>"
+                    f"<td>{fmt(m.get('psnr_final_tonemapped_true_specular'))}</td></tr>")
     return ("<h2>Where the error is: what the training cameras saw</h2><p class=\"note\">Test-view pixels whose "
             "ground-truth surface a training camera sees directly (its depth buffer has that surface there) vs the "
             "rest, which a model learns only through reflections or not at all. Final, tonemapped PSNR (dB), means "
-            "over the test views; a low 'seen' column is the reconstruction's own error.</p><table><tr><th class="
-            "\"l\">scene</th><th>seen pixels (%)</th><th>final</th><th>final, seen</th><th>final, unseen</th>"
-            "<th>unseen share of the error (%)</th></tr>" + "".join(rows) + "</table>")
+            "over the test views; a low 'seen' column is the reconstruction's own error. The last two columns: "
+            "the final score with the ground truth's diffuse / specular layer in place of ours (the layer whose "
+            "truth lifts it most is the one that limits the scene).</p><table><tr><th class=\"l\">scene</th>"
+            "<th>seen pixels (%)</th><th>final</th><th>final, seen</th><th>final, unseen</th>"
+            "<th>unseen share of the error (%)</th><th>final with true diffuse</th><th>final with true specular</th>"
+            "</tr>" + "".join(rows) + "</table>")
 
 
 def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report", command: str | None = None,
