@@ -184,3 +184,31 @@ def test_true_layer_scores_name_the_layer_that_limits_the_final_image(tmp_path):
     assert m["psnr_final_tonemapped_true_specular"] > 150
     assert m["psnr_final_tonemapped_true_diffuse"] == pytest.approx(m["psnr_final_tonemapped"])
     assert m["psnr_final_tonemapped"] < 40
+
+
+def test_normal_angles_on_all_and_on_shiny_pixels(tmp_path):
+    """normal_angle_deg: median angle between our (unnormalised) rendered normals and the truth's;
+    shiny_normal_angle_deg[_p90]: the same on F0 > 0.3 pixels only; absent without normals."""
+    cap = plane_capture()
+    test = cap.split("test")[0]
+    h, w = test.buffers["depth"].shape[:2]
+    test.buffers["specular"] = 0.2 * test.buffers["diffuse"]
+    test.buffers["normal"] = np.broadcast_to(np.float32([0, 0, 1]), (h, w, 3)).copy()
+    f0 = np.full((h, w, 3), 0.04, np.float32)
+    f0[:, : w // 4] = 0.9  # a metal strip on the left quarter
+    test.buffers["f0"] = f0
+    tilt = np.radians(10.0)
+    ours = np.broadcast_to(np.float32([0, 0, 3]), (h, w, 3)).copy()  # right direction, length 3
+    ours[:, : w // 4] = 2 * np.float32([np.sin(tilt), 0, np.cos(tilt)])  # 10 degrees off on the metal
+    final = test.buffers["diffuse"] + test.buffers["specular"]
+    _write_render(tmp_path, test.name, test.buffers["diffuse"], test.buffers["specular"], final)
+    from models.capture.exr import read_exr_channels
+    channels = read_exr_channels(tmp_path / f"{test.name}.exr")
+    channels.update({f"normal.{c}": ours[..., i] for i, c in enumerate("XYZ")})
+    write_exr_channels(tmp_path / f"{test.name}.exr", channels)
+    m = evaluate_renders(cap, tmp_path)["views"][test.name]
+    assert m["normal_angle_deg"] == pytest.approx(0.0, abs=0.05)  # 3/4 of the pixels are right
+    assert m["shiny_normal_angle_deg"] == pytest.approx(10.0, abs=0.05)
+    assert m["shiny_normal_angle_deg_p90"] == pytest.approx(10.0, abs=0.05)
+    del test.buffers["normal"]
+    assert "normal_angle_deg" not in evaluate_renders(cap, tmp_path)["views"][test.name]

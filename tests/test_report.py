@@ -66,6 +66,7 @@ def test_batch_report_tables(tiny_demo, tmp_path):
     assert "Where the error is" in dom and f"{100 * metrics['seen_fraction']:.1f}" in dom
     assert f"{metrics['seen_psnr_final_tonemapped']:.2f}" in dom
     assert f"{metrics['psnr_final_tonemapped_true_specular']:.2f}" in dom  # which layer limits it
+    assert f"{metrics['shiny_normal_angle_deg']:.1f} ({metrics['shiny_normal_angle_deg_p90']:.1f})" in dom
 
 
 def test_batch_report_names_missing_scene(tmp_path):

@@ -33,6 +33,8 @@ from .image import SSIM_DEFINITION, psnr, ssim
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE
 from .lpips import LpipsWeights, lpips_images
 
+SHINY_F0 = 0.3  # ground-truth F0 above this: a metal / mirror pixel (normal scores)
+
 DEFINITIONS = {
     "peak": "the view's reference peak: max of its ground-truth final image (diffuse + specular + emission) over "
             "pixels and channels, 1 if that is not positive; every layer of the view is scored at it",
@@ -66,6 +68,10 @@ DEFINITIONS = {
                                                      "render with the ground truth's diffuse (+ emission) / specular "
                                                      "layer in place of ours; the layer whose truth lifts it most is "
                                                      "the one to improve",
+    "normal_angle_deg": "median angle (degrees) between our rendered normal (normalised) and the ground truth's, over "
+                        "the pixels where both exist; a novel view's normals are what its reflections are made of",
+    "shiny_normal_angle_deg[_p90]": "the same (median, 90th percentile) on the mirror-like and metal pixels "
+                                    f"(ground-truth F0 > {SHINY_F0}), where a few degrees turn a reflection",
     "ssim": SSIM_DEFINITION,
     "saturated": f"views / layers where > {hdr.SATURATED_FRACTION:.0%} of ground-truth pixels exceed 1 (the clamped "
                  f"scores ignore errors there) or a PSNR is > {hdr.SATURATED_DB:.0f} dB or not finite",
@@ -179,6 +185,26 @@ def _seen_scores(view, train, pred: dict, gt: dict, peak: float) -> dict:
     return row
 
 
+def _normal_scores(view, rendered: dict) -> dict:
+    """normal_angle_deg, shiny_normal_angle_deg[_p90] (``DEFINITIONS``); {} without normals on either side."""
+    if "normal" not in view.buffers or "normal" not in rendered:
+        return {}
+    truth, ours = view.buffers["normal"].astype(np.float64), rendered["normal"].astype(np.float64)
+    length = np.linalg.norm(ours, axis=-1)
+    both = (np.linalg.norm(truth, axis=-1) > 0.5) & (length > 1e-6)
+    cos = (truth * ours).sum(-1) / np.maximum(length, 1e-12)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    row = {}
+    if both.any():
+        row["normal_angle_deg"] = float(np.median(angle[both]))
+    if "f0" in view.buffers:
+        shiny = both & (view.buffers["f0"].max(-1) > SHINY_F0)
+        if shiny.any():
+            row["shiny_normal_angle_deg"] = float(np.median(angle[shiny]))
+            row["shiny_normal_angle_deg_p90"] = float(np.percentile(angle[shiny], 90))
+    return row
+
+
 def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = None,
                      lpips: LpipsWeights | None = None) -> dict:
     """Per-view and mean metrics (module docstring); ``regions``: name -> {min: [x, y, z], max: [x, y, z]} world
@@ -196,10 +222,10 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
         exr = renders / f"{view.name}.exr"
         if not exr.is_file():
             raise FileNotFoundError(f"render of test view {view.name!r} missing: {exr}")
-        pred = read_view_buffers(exr, view.camera.height, view.camera.width)
+        rendered = read_view_buffers(exr, view.camera.height, view.camera.width)
         gt = ground_truth(view.buffers)
-        pred = {"diffuse": pred["diffuse"], "specular": pred["specular"], "final": pred["rgb"]}
-        row = {"peak": hdr.peak(gt["final"])}
+        pred = {"diffuse": rendered["diffuse"], "specular": rendered["specular"], "final": rendered["rgb"]}
+        row = {"peak": hdr.peak(gt["final"]), **_normal_scores(view, rendered)}
         for layer in SCORED:
             scores = score_layer(pred[layer], gt[layer], layer, reference=row["peak"])
             row.update(scores)

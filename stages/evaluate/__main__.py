@@ -20,7 +20,9 @@ def main(argv: list[str] | None = None) -> int:
         "tonemapped (the headline), and, blind above 1, clamped and clamp + sRGB curve (as the PNGs); SSIM as 3DGS; "
         "'saturated' lists scores that stopped measuring (models/metrics/scoring.py DEFINITIONS); where the training "
         "views have depth, the tonemapped scores split into the pixels a training camera sees directly and the rest "
-        "(seen_fraction, <seen|unseen>_psnr_<layer>_tonemapped, unseen_error_share_<layer>). Adds training "
+        "(seen_fraction, <seen|unseen>_psnr_<layer>_tonemapped, unseen_error_share_<layer>); with normal buffers, "
+        "the angle between our normals and the truth's (normal_angle_deg, shiny_normal_angle_deg on F0 > 0.3). "
+        "Adds training "
         "time, Gaussian count, peak memory and the training decisions from the model's stage.json, render time "
         "from the renders' stage.json, and render FPS at 1 spp (no denoiser). Writes <out> (metrics.json).",
     )
@@ -53,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
         lpips = None
         if section.get("lpips") is not None:
             lpips = load_lpips(**lpips_files(section["lpips"])).to(args.device)
-        capture = read_capture(args.capture, layers=["diffuse", "specular", "emission", "depth", "mask"])
+        capture = read_capture(args.capture, layers=["diffuse", "specular", "emission", "depth", "mask", "normal",
+                                                      "f0"])
         if not capture.split("test"):
             raise CaptureError(f"{args.capture}: the capture has no test views, nothing to score the renders "
                                "against; mark some frames \"split\": \"test\" in its transforms.json (photos: "

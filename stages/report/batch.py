@@ -64,7 +64,8 @@ def _photos_path_table(metrics: dict[str, dict]) -> str:
 def _seen_table(metrics: dict[str, dict]) -> str:
     """Per scene, where the test views' error is: on pixels a training camera sees directly or not
     (metrics.json seen_fraction, <seen|unseen>_psnr_final_tonemapped, unseen_error_share_final), and the final
-    score with the true diffuse / specular layer in place of ours (which layer limits it)."""
+    score with the true diffuse / specular layer in place of ours (which layer limits it), and the normals' angle
+    error on metal / mirror pixels."""
     keys = {"seen_fraction", "psnr_final_tonemapped_true_diffuse"}
     names = [n for n in metrics if keys & set(metrics[n].get("mean", {}))]
     if not names:
@@ -79,15 +80,21 @@ def _seen_table(metrics: dict[str, dict]) -> str:
                     f"<td>{fmt(m.get('unseen_psnr_final_tonemapped'))}</td>"
                     f"<td>{pct('unseen_error_share_final', 0)}</td>"
                     f"<td>{fmt(m.get('psnr_final_tonemapped_true_diffuse'))}</td>"
-                    f"<td>{fmt(m.get('psnr_final_tonemapped_true_specular'))}</td></tr>")
+                    f"<td>{fmt(m.get('psnr_final_tonemapped_true_specular'))}</td>"
+                    f"<td>{fmt(m.get('shiny_normal_angle_deg'), 1)} ({fmt(m.get('shiny_normal_angle_deg_p90'), 1)})"
+                    "</td></tr>")
     return ("<h2>Where the error is: what the training cameras saw</h2><p class=\"note\">Test-view pixels whose "
             "ground-truth surface a training camera sees directly (its depth buffer has that surface there) vs the "
             "rest, which a model learns only through reflections or not at all. Final, tonemapped PSNR (dB), means "
-            "over the test views; a low 'seen' column is the reconstruction's own error. The last two columns: "
+            "over the test views; a low 'seen' column is the reconstruction's own error. The next two columns: "
             "the final score with the ground truth's diffuse / specular layer in place of ours (the layer whose "
-            "truth lifts it most is the one that limits the scene).</p><table><tr><th class=\"l\">scene</th>"
+            "truth lifts it most is the one that limits the scene). Normals on metal / mirror pixels (ground-truth "
+            "F0 > 0.3): the angle to the true normal in degrees, each view's median (90th percentile) averaged over "
+            "the test views: "
+            "a reflection turns by twice it.</p><table><tr><th class=\"l\">scene</th>"
             "<th>seen pixels (%)</th><th>final</th><th>final, seen</th><th>final, unseen</th>"
             "<th>unseen share of the error (%)</th><th>final with true diffuse</th><th>final with true specular</th>"
+            "<th>shiny normals (deg)</th>"
             "</tr>" + "".join(rows) + "</table>")
 
 
