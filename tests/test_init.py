@@ -56,7 +56,8 @@ def test_flatten_makes_discs_in_the_plane_the_normal_buffer_gives():
     tilt = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])  # a normal buffer tilted off the plane's
     for v in cap.views:
         v.buffers["normal"] = np.broadcast_to(tilt, v.buffers["depth"].shape[:2] + (3,)).astype(np.float32).copy()
-    sphere, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40))
+    sphere, _ = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40, flatten=1.0))
+    assert InitConfig().flatten == 0.3  # discs by default (the README's zoo rows)
     disc, summary = dense_init(cap, InitConfig(resolution=40, voxel_fraction=1 / 40, flatten=0.25))
     assert summary["discs"] == len(disc)
     assert torch.equal(sphere.means, disc.means) and torch.equal(sphere.log_scales[:, 0], disc.log_scales[:, 0])
@@ -99,8 +100,8 @@ def test_cli_writes_ply(tmp_path, caplog):
     g = read_ply(tmp_path / "init/points.ply")
     assert len(g) > 50 and (tmp_path / "init/stage.json").is_file()
     assert init_main(["--capture", str(tmp_path / "nope"), "--out", str(tmp_path / "x")]) == 1
-    # flatten < 1 on a capture without normals: spheres, and the log says why
-    with caplog.at_level("WARNING"):
+    # flatten < 1 on a capture without normals: spheres, and the log says why (info: the default asks for discs)
+    with caplog.at_level("INFO"):
         assert init_main(["--capture", str(tmp_path / "cap"), "--out", str(tmp_path / "init_s"),
                           "--config-json", '{"resolution": 40, "voxel_fraction": 0.025, "flatten": 0.5}']) == 0
     assert "none made: the capture has no normal buffer" in caplog.text

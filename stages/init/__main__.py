@@ -47,9 +47,11 @@ def main(argv: list[str] | None = None) -> int:
     log.info("init: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in summary.items() if k != "decision"))
     if config.flatten < 1.0 and not summary.get("discs"):
-        log.warning("init.flatten %g asked for discs, none made: %s", config.flatten,
-                    "the capture has no normal buffer" if not any("normal" in v.buffers for v in capture.views)
-                    else "no voxel's normals agree")
+        if any("normal" in v.buffers for v in capture.views):  # normals, yet no disc: worth a look
+            log.warning("init.flatten %g asked for discs, none made: no voxel's normals agree", config.flatten)
+        else:  # photos / SfM captures without normals: the reference's spheres, as expected
+            log.info("init.flatten %g asked for discs, none made: the capture has no normal buffer (spheres)",
+                     config.flatten)
     with staged_folder(args.out) as out:
         write_ply(out / "points.ply", gaussians)
         write_stage_json(out, "init", section, time.perf_counter() - start, extra={"summary": summary})
