@@ -112,10 +112,20 @@ def score_layer(pred: np.ndarray, target: np.ndarray, layer: str, reference: flo
     }
 
 
+def surface_points(view) -> np.ndarray:
+    """[H, W, 3] float64: each pixel's ground-truth surface point, camera + unit ray x depth (a distance; a pixel
+    whose depth is not finite or <= 0 gets the camera's centre)."""
+    depth = view.buffers["depth"][..., 0].astype(np.float64)
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+    return view.camera.origin + view.camera.ray_directions() * depth[..., None]
+
+
 def region_mask(view, box_min, box_max) -> np.ndarray:
     """[H, W] bool: pixels whose ground-truth surface point (camera + ray x depth) lies in the world box."""
-    points = view.camera.origin + view.camera.ray_directions() * view.buffers["depth"].astype(np.float64)
+    points = surface_points(view)
+    depth = view.buffers["depth"][..., 0]
     inside = np.all((points >= np.asarray(box_min)) & (points <= np.asarray(box_max)), axis=-1)
+    inside &= np.isfinite(depth) & (depth > 0)  # no surface: in no box
     if "mask" in view.buffers:
         inside &= view.buffers["mask"][..., 0] > 0.5
     return inside
@@ -133,8 +143,7 @@ def seen_mask(view, train_views) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     depth = view.buffers["depth"][..., 0].astype(np.float64)
     surface = np.isfinite(depth) & (depth > 0)
-    points = (view.camera.origin + view.camera.ray_directions() * np.where(surface, depth, 0.0)[..., None])
-    points = points.reshape(-1, 3)
+    points = surface_points(view).reshape(-1, 3)
     todo = surface.reshape(-1).copy()
     seen = np.zeros(len(points), dtype=bool)
     for t in train_views:
@@ -165,9 +174,9 @@ LPIPS_OFF = ("not computed: LPIPS needs local weight files (nothing is downloade
              "weights/v0.1/alex.pth>} in the scene config, snakemake --config or stages.evaluate --config-json")
 
 
-def _seen_scores(view, train, pred: dict, gt: dict, peak: float) -> dict:
+def _seen_scores(view, train, tonemapped: dict) -> dict:
     """seen_fraction, <seen|unseen>_psnr_<layer>_tonemapped, unseen_error_share_<layer> (``DEFINITIONS``) of a
-    test view; {} when the training views have no depth."""
+    test view (``tonemapped``: layer -> (ours, truth) mu-law images); {} when the training views have no depth."""
     masks = seen_mask(view, train)
     if masks is None:
         return {}
@@ -175,7 +184,7 @@ def _seen_scores(view, train, pred: dict, gt: dict, peak: float) -> dict:
     unseen = surface & ~seen
     row = {"seen_fraction": float(seen.sum() / max(surface.sum(), 1))}
     for layer in SCORED:
-        mp, mt = hdr.mu_law(pred[layer], peak), hdr.mu_law(gt[layer], peak)
+        mp, mt = tonemapped[layer]
         err = ((mp - mt) ** 2).mean(-1)
         for name, m in (("seen", seen), ("unseen", unseen)):
             if m.any():
@@ -226,6 +235,8 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
         gt = ground_truth(view.buffers)
         pred = {"diffuse": rendered["diffuse"], "specular": rendered["specular"], "final": rendered["rgb"]}
         row = {"peak": hdr.peak(gt["final"]), **_normal_scores(view, rendered)}
+        tonemapped = {layer: (hdr.mu_law(pred[layer], row["peak"]), hdr.mu_law(gt[layer], row["peak"]))
+                      for layer in SCORED}  # (ours, truth): the region and seen scores
         for layer in SCORED:
             scores = score_layer(pred[layer], gt[layer], layer, reference=row["peak"])
             row.update(scores)
@@ -237,7 +248,7 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
                 saturated.append({"view": view.name, "layer": layer, "reasons": reasons})
         for layer, other in (("diffuse", "specular"), ("specular", "diffuse")):
             row[f"psnr_final_tonemapped_true_{layer}"] = psnr(hdr.mu_law(gt[layer] + pred[other], row["peak"]),
-                                                             hdr.mu_law(gt["final"], row["peak"]))
+                                                             tonemapped["final"][1])
         for name, box in (regions or {}).items():
             m = region_mask(view, box["min"], box["max"])
             row[f"{name}_pixels"] = int(m.sum())
@@ -245,10 +256,9 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
                 if m.any():
                     row[f"{name}_psnr_{layer}"] = psnr(pred[layer], gt[layer], m, peak=row["peak"])
                     row[f"{name}_psnr_{layer}_clamped"] = psnr(np.clip(pred[layer], 0, 1), np.clip(gt[layer], 0, 1), m)
-                    row[f"{name}_psnr_{layer}_tonemapped"] = psnr(hdr.mu_law(pred[layer], row["peak"]),
-                                                                  hdr.mu_law(gt[layer], row["peak"]), m)
+                    row[f"{name}_psnr_{layer}_tonemapped"] = psnr(*tonemapped[layer], m)
         if "depth" in view.buffers:
-            row.update(_seen_scores(view, train, pred, gt, row["peak"]))
+            row.update(_seen_scores(view, train, tonemapped))
         per_view[view.name] = row
     keys = dict.fromkeys(k for r in per_view.values() for k in r)
     mean = {k: float(np.mean([r[k] for r in per_view.values() if k in r])) for k in keys}

@@ -70,15 +70,16 @@ def _seen_table(metrics: dict[str, dict]) -> str:
     names = [n for n in metrics if keys & set(metrics[n].get("mean", {}))]
     if not names:
         return ""
+    def pct(m: dict, key: str, digits: int) -> str:
+        return fmt(100 * m[key], digits) if key in m else "–"
+
     rows = []
     for n in names:
         m = metrics[n]["mean"]
-        def pct(key: str, digits: int) -> str:
-            return fmt(100 * m[key], digits) if key in m else "–"
-        rows.append(f"<tr><td class=\"l\">{esc(n)}</td><td>{pct('seen_fraction', 1)}</td>"
+        rows.append(f"<tr><td class=\"l\">{esc(n)}</td><td>{pct(m, 'seen_fraction', 1)}</td>"
                     f"<td>{fmt(m.get('psnr_final_tonemapped'))}</td><td>{fmt(m.get('seen_psnr_final_tonemapped'))}</td>"
                     f"<td>{fmt(m.get('unseen_psnr_final_tonemapped'))}</td>"
-                    f"<td>{pct('unseen_error_share_final', 0)}</td>"
+                    f"<td>{pct(m, 'unseen_error_share_final', 0)}</td>"
                     f"<td>{fmt(m.get('psnr_final_tonemapped_true_diffuse'))}</td>"
                     f"<td>{fmt(m.get('psnr_final_tonemapped_true_specular'))}</td>"
                     f"<td>{fmt(m.get('shiny_normal_angle_deg'), 1)} ({fmt(m.get('shiny_normal_angle_deg_p90'), 1)})"
