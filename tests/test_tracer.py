@@ -18,6 +18,7 @@ from models.gaussians import Gaussians, random_gaussians, room_gaussians
 from models.tracer import LAYERS, Tracer, TracerConfig, reference_trace
 
 OUTPUTS = ["diffuse", "depth", "normal", "roughness", "f0", "transmittance"]
+FORWARD = OUTPUTS + ["front_depth"]  # compared with the reference; front_depth has no gradient
 FWD_ATOL = 1e-4    # float32 kernel vs float64 reference; worst seen ~5e-6
 GRAD_RTOL = 1e-3   # relative L2 error per parameter tensor; worst seen ~6e-6
 
@@ -65,7 +66,7 @@ def assert_hit_counts(out, ref, keep, cfg: TracerConfig, seed=None):
 def compare_forward(out, ref, amb, seed, cfg: TracerConfig, atol=FWD_ATOL):
     keep = ~amb
     assert keep.float().mean() > 0.9, f"seed {seed}: too many ambiguous rays ({int(amb.sum())})"
-    for name in OUTPUTS:
+    for name in FORWARD:
         a, b = getattr(out, name).double()[keep], getattr(ref, name)[keep]
         err = (a - b).abs().max().item() if a.numel() else 0.0
         assert err < atol, f"seed {seed}: {name} max abs error {err:.3g}"
@@ -175,7 +176,7 @@ def test_one_and_two_threads_identical():
         sum(getattr(out, k).sum() for k in OUTPUTS).backward()
         outs.append(out)
         grads.append({k: v.grad.clone() for k, v in g.params().items()})
-    for name in OUTPUTS + ["hit_count", "blended_count", "candidates"]:
+    for name in FORWARD + ["hit_count", "blended_count", "candidates"]:
         assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {name}"
     for name in grads[0]:  # per-thread buffers are summed: equal up to float32 summation order
         a, b = grads[0][name], grads[1][name]
@@ -193,7 +194,7 @@ def test_replay_overflow_grows_and_reruns(variant):
     g = gs.to().requires_grad_()
     out = tiny.trace(origins, dirs, g)
     assert out.overflow_rays > 0 and tiny.capacity > 2 and out.replay_capacity == tiny.capacity
-    for name in OUTPUTS + ["blended_count"]:
+    for name in FORWARD + ["blended_count"]:
         assert torch.equal(getattr(out, name), getattr(big, name)), name
     assert torch.equal(out.hit_count > out.blended_count, big.hit_count > big.blended_count)  # the tail rule
     out.diffuse.sum().backward()
@@ -222,7 +223,7 @@ def test_refit_after_moving_equals_fresh_build_and_count_change_rebuilds(ordered
     assert not tracer.bvh.last_was_rebuild
     fresh = Tracer(TracerConfig(traversal="ordered" if ordered else "interval")).trace(origins, dirs, gs)
     # (ordered: hits found before stopping depend on the tree, which a refit keeps)
-    for name in OUTPUTS + ["blended_count"] + ([] if ordered else ["hit_count"]):
+    for name in FORWARD + ["blended_count"] + ([] if ordered else ["hit_count"]):
         assert torch.equal(getattr(moved, name), getattr(fresh, name)), name
     fewer = Gaussians(**{k: v[:150] for k, v in gs.params().items()})
     tracer.trace(origins, dirs, fewer)
@@ -272,7 +273,7 @@ def test_scene_types_match_reference(kind, traversal):
     out = Tracer(cfg).trace(origins, dirs, gk)
     keep = ~amb
     assert keep.float().mean() > 0.8, f"seed {seed}: too many ambiguous rays ({int(amb.sum())})"
-    for name in OUTPUTS:
+    for name in FORWARD:
         err = (getattr(out, name).double() - getattr(ref, name))[keep].abs().max().item()
         assert err < FWD_ATOL, f"seed {seed}: {name} max abs error {err:.3g}"
     assert torch.equal(out.blended_count[keep], ref.blended_count[keep]), f"seed {seed}: blended counts differ"
@@ -316,7 +317,7 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
     # setting acts would say nothing (0.02: 0 of 60 fresh seeds fail)
     tracers = [Tracer(TracerConfig(inside_whole_window=flag, window=0.02)) for flag in (True, False)]
     outs = [t.trace(origins, dirs, gs) for t in tracers]
-    for name in OUTPUTS + ["hit_count", "blended_count"]:
+    for name in FORWARD + ["hit_count", "blended_count"]:
         assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind}: {name}"
     # the setting acts on rays from inside the box only: a ray from outside examines exactly the same boxes
     union, core = (torch.tensor(tracers[0].scene_box_values[i:i + 6]).reshape(2, 3) for i in (0, 6))
@@ -371,7 +372,7 @@ def test_octant_trees_change_no_output(kind):
         gs, origins, dirs = _turned(*scene, flip)
         tracers = [Tracer(TracerConfig(octant_bvh=flag)) for flag in ("always", "never")]
         outs = [t.trace(origins, dirs, gs) for t in tracers]
-        for name in OUTPUTS + ["hit_count", "blended_count"]:
+        for name in FORWARD + ["hit_count", "blended_count"]:
             assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind} {flip}: {name}"
         assert len(tracers[0].bvh.mirrored) == 7 and not tracers[1].bvh.mirrored
         lo, hi = tracers[0].bvh.lowers.numpy(), tracers[0].bvh.uppers.numpy()
@@ -399,7 +400,7 @@ def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypa
     tracer.trace(origins, dirs, gs)
     third = tracer.trace(origins, dirs, gs)  # 432 rays since the update
     assert len(tracer.bvh.mirrored) == 7 and tracer._octants and tracer.bvh.octants_current
-    for name in OUTPUTS + ["hit_count", "blended_count"]:
+    for name in FORWARD + ["hit_count", "blended_count"]:
         assert torch.equal(getattr(first, name), getattr(third, name)), name
     assert third.candidates.sum() < first.candidates.sum()
     with torch.no_grad():
@@ -411,7 +412,7 @@ def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypa
         moved_octants = tracer.trace(origins, dirs, gs)
     assert tracer._octants and np.array_equal(tracer.bvh.octant_ids.numpy(), trees)  # refitted: the same trees
     truth = plain.trace(origins, dirs, gs)
-    for name in OUTPUTS + ["hit_count", "blended_count"]:
+    for name in FORWARD + ["hit_count", "blended_count"]:
         assert torch.equal(getattr(moved, name), getattr(truth, name)), name
         assert torch.equal(getattr(moved_octants, name), getattr(truth, name)), name
 
@@ -455,7 +456,7 @@ def _check_edge(gs64: Gaussians, origins, dirs, cfg=None, device="cpu"):
     gk = gs64.to(dtype=torch.float32).requires_grad_()
     out = Tracer(cfg, device).trace(origins, dirs, gk)
     ref = reference_trace(origins, dirs, gs64, cfg)
-    for name in OUTPUTS:
+    for name in FORWARD:
         a = getattr(out, name)
         assert torch.isfinite(a).all(), name
         assert (a.double() - getattr(ref, name)).abs().max() < FWD_ATOL, name
@@ -698,7 +699,7 @@ def test_ordered_traversal_matches_reference_and_stops_early(device, variant):
     out = Tracer(cfg, device).trace(origins, dirs, gk)
     ref, amb = reference_trace(origins, dirs, gr, cfg, return_ambiguous=True, ambiguity_eps=1e-5)
     keep = ~amb
-    for name in OUTPUTS:
+    for name in FORWARD:
         err = (getattr(out, name).double() - getattr(ref, name))[keep].abs().max().item()
         assert err < FWD_ATOL, f"seed {seed}: {name} max abs error {err:.3g}"
     assert torch.equal(out.blended_count[keep], ref.blended_count[keep]), f"seed {seed}"

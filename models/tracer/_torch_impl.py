@@ -12,6 +12,8 @@ from models.gaussians.scene import Gaussians
 from models.tracer.config import TracerConfig
 from models.tracer.output import TraceOutput
 
+FRONT_TRANSMITTANCE = 0.5  # as models/tracer/blend.py
+
 
 def cutoff_radius(opacities: torch.Tensor, p: int, alpha_min: float) -> torch.Tensor:
     """Opacity-adaptive cut-off radius s = (2p ln(opacity / alpha_min))^(1/(2p)) in local units (alpha > alpha_min
@@ -77,7 +79,7 @@ def reference_trace(origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussi
     out = TraceOutput(
         diffuse=cat["out"][:, 0:3], normal=cat["out"][:, 3:6], roughness=cat["out"][:, 6],
         f0=cat["out"][:, 7:10], depth=cat["out"][:, 10], transmittance=cat["t_end"],
-        hit_count=cat["hits"], blended_count=cat["blended"],
+        hit_count=cat["hits"], blended_count=cat["blended"], front_depth=cat["front"],
     )
     return (out, cat["ambiguous"]) if return_ambiguous else out
 
@@ -103,6 +105,10 @@ def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps, scope="all
     acc = (w[..., None] * f_s).sum(1)                                        # [R, 11]
     scale = torch.where(truncated, 1 / (1 - t_end), torch.ones_like(t_end))
     out = acc * scale[:, None]
+    with torch.no_grad():  # the surface's front (TraceOutput.front_depth): the hits blended while T >= 0.5
+        w_front = torch.where(blended & (trans >= FRONT_TRANSMITTANCE), w, torch.zeros_like(w))
+        front_w = w_front.sum(1)
+        front = torch.where(front_w > 0, (w_front * t_s).sum(1) / front_w.clamp_min(1e-30), torch.zeros_like(front_w))
 
     with torch.no_grad():
         relevant = torch.ones_like(valid)  # [R, N] hits whose decisions can change outputs or the tail rule
@@ -118,7 +124,8 @@ def _trace_chunk(origins, dirs, means, w2l, opac, feats, config, eps, scope="all
         amb |= (cand & ((radius - s[None]).abs() < eps) & (raw_alpha > config.alpha_min - eps)).any(1)
         amb |= ((raw_alpha > config.alpha_min) & ((t - config.t_min).abs() < eps) & relevant).any(1)
         amb |= (valid_s & relevant_s & ((trans - config.transmittance_threshold).abs() < eps)).any(1)
+        amb |= (blended & ((trans - FRONT_TRANSMITTANCE).abs() < eps)).any(1)  # in or out of the front depth
         if n > 1:
             gap = (key_sorted[:, 1:] - key_sorted[:, :-1]).abs()
             amb |= (valid_s[:, 1:] & relevant_s[:, 1:] & (gap < eps * (1 + key_sorted[:, :-1].abs()))).any(1)
-    return {"out": out, "t_end": t_end, "hits": hits, "blended": n_blended, "ambiguous": amb}
+    return {"out": out, "t_end": t_end, "hits": hits, "blended": n_blended, "front": front, "ambiguous": amb}

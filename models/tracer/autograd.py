@@ -17,11 +17,11 @@ class TraceFunction(torch.autograd.Function):
         ctx.tracer, ctx.state = tracer, state
         ctx.save_for_backward(*params)
         ints = (out.hit_count, out.blended_count, out.candidates, out.obb_candidates)
-        ctx.mark_non_differentiable(*ints)
-        return (out.diffuse, out.depth, out.normal, out.roughness, out.f0, out.transmittance, *ints)
+        ctx.mark_non_differentiable(out.front_depth, *ints)
+        return (out.diffuse, out.depth, out.normal, out.roughness, out.f0, out.transmittance, out.front_depth, *ints)
 
     @staticmethod
-    def backward(ctx, g_diffuse, g_depth, g_normal, g_rough, g_f0, g_trans, *_):
+    def backward(ctx, g_diffuse, g_depth, g_normal, g_rough, g_f0, g_trans, *_):  # front_depth, counts: none
         inputs = list(ctx.saved_tensors)
         up = {"diffuse": g_diffuse, "depth": g_depth, "normal": g_normal, "roughness": g_rough, "f0": g_f0,
               "transmittance": g_trans}

@@ -7,6 +7,9 @@ import warp as wp
 
 from models.tracer.structs import GaussianData, RayOutputs, Replay
 
+# front depth: the hits blended while the transmittance in front of them is at least this (output.TraceOutput)
+FRONT_TRANSMITTANCE = wp.constant(0.5)
+
 
 @wp.struct
 class Blend:
@@ -19,6 +22,8 @@ class Blend:
     normal: wp.vec3
     roughness: float
     f0: wp.vec3
+    front_depth: float  # sum of w t over the hits blended while T >= FRONT_TRANSMITTANCE (the surface's front)
+    front_weight: float  # sum of their w
     blended: int        # hits blended (= the sorted replay prefix)
 
 
@@ -41,6 +46,9 @@ def blend_slot(acc: Blend, g: GaussianData, rep: Replay, ray: int, slot: int) ->
     acc.f0 += w * g.f0[gid]
     acc.roughness += w * g.roughness[gid]
     acc.depth += w * rep.t[ray, slot]
+    if acc.trans >= FRONT_TRANSMITTANCE:
+        acc.front_depth += w * rep.t[ray, slot]
+        acc.front_weight += w
     rep.trans[ray, slot] = acc.trans
     acc.trans = acc.trans * (1.0 - a)
     acc.blended += 1
@@ -59,6 +67,10 @@ def write_outputs(ray: int, n_acc: int, acc: Blend, outs: RayOutputs):
     outs.roughness[ray] = scale * acc.roughness
     outs.f0[ray] = scale * acc.f0
     outs.transmittance[ray] = acc.trans
+    front = float(0.0)
+    if acc.front_weight > 0.0:
+        front = acc.front_depth / acc.front_weight
+    outs.front_depth[ray] = front
     outs.hit_count[ray] = n_acc
     outs.blended[ray] = acc.blended
     outs.needed[ray] = 0

@@ -13,7 +13,8 @@ from models.tracer.structs import GaussianGrads, RayGrads, RayOutputs, Replay, v
 # RayOutputs field -> (Warp dtype, components)
 OUT_FIELDS = {
     "diffuse": (wp.vec3, 3), "depth": (float, 1), "normal": (wp.vec3, 3), "roughness": (float, 1),
-    "f0": (wp.vec3, 3), "transmittance": (float, 1), "hit_count": (wp.int32, 1), "blended": (wp.int32, 1),
+    "f0": (wp.vec3, 3), "transmittance": (float, 1), "front_depth": (float, 1), "hit_count": (wp.int32, 1),
+    "blended": (wp.int32, 1),
     "candidates": (wp.int32, 1), "obb_candidates": (wp.int32, 1), "needed": (wp.int32, 1),
 }
 GRAD_FIELDS = {

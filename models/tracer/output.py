@@ -33,6 +33,10 @@ class TraceOutput:
     hit_count: torch.Tensor      # [R] int32 accepted hits (alpha > alpha_min, in box, t > t_min); the traversals
     #                              that stop early count those found: blended + 1 on a truncated ray (interval)
     blended_count: torch.Tensor  # [R] int32 hits blended before the transmittance threshold
+    # [R] (detached) the surface's front: sum(w t) / sum(w) over the blended hits whose incoming T is >= 0.5 (the
+    # first blended hit always is); 0 where nothing is blended. Where a reflection starts (models/pathtrace/paths.py):
+    # seen at an angle the depth above lies INSIDE a surface by the shell's spread behind its front half
+    front_depth: torch.Tensor | None = None
     # Diagnostics (Warp tracer only; None from the reference).
     candidates: torch.Tensor | None = None      # [R] int32 BVH leaves (world AABBs) visited
     obb_candidates: torch.Tensor | None = None  # [R] int32 candidates whose cut-off ellipsoid the ray meets

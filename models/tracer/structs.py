@@ -63,6 +63,7 @@ class RayOutputs:
     roughness: wp.array(dtype=float)      # [R]
     f0: wp.array(dtype=wp.vec3)           # [R]
     transmittance: wp.array(dtype=float)  # [R]
+    front_depth: wp.array(dtype=float)    # [R] weight-normalised t of the hits blended while T >= 0.5 (blend.py)
     hit_count: wp.array(dtype=wp.int32)   # [R] accepted hits
     blended: wp.array(dtype=wp.int32)     # [R] blended hits
     candidates: wp.array(dtype=wp.int32)  # [R] BVH leaves visited (first traversal)

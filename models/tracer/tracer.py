@@ -224,10 +224,10 @@ class Tracer:
             origins, dirs = self._check_rays(origins, dirs, deferred=self._checks is not None)
             self._ensure_updated(gaussians)
             res = TraceFunction.apply(self, origins, dirs, *gaussians.params().values())
-        diffuse, depth, normal, rough, f0, trans, hits, blended, cand, obb = res
+        diffuse, depth, normal, rough, f0, trans, front, hits, blended, cand, obb = res
         return TraceOutput(diffuse=diffuse, depth=depth, normal=normal, roughness=rough, f0=f0,
-                           transmittance=trans, hit_count=hits, blended_count=blended, candidates=cand,
-                           obb_candidates=obb, overflow_rays=self.last_overflow_rays,
+                           transmittance=trans, front_depth=front, hit_count=hits, blended_count=blended,
+                           candidates=cand, obb_candidates=obb, overflow_rays=self.last_overflow_rays,
                            replay_capacity=self.capacity)
 
     def trace_fused(self, origins: torch.Tensor, dirs: torch.Tensor, gaussians: Gaussians,
@@ -508,7 +508,8 @@ class Tracer:
         t = {k: to_torch(v, dev) for k, v in outs.items()}
         f = {k: (t[k].to(dt) if t[k].dtype == torch.float32 else t[k]) for k in t}
         return TraceOutput(diffuse=f["diffuse"], depth=f["depth"], normal=f["normal"], roughness=f["roughness"],
-                           f0=f["f0"], transmittance=f["transmittance"], hit_count=f["hit_count"],
+                           f0=f["f0"], transmittance=f["transmittance"], front_depth=f["front_depth"],
+                           hit_count=f["hit_count"],
                            blended_count=f["blended"], candidates=f["candidates"],
                            obb_candidates=f["obb_candidates"], overflow_rays=self.last_overflow_rays,
                            replay_capacity=self.capacity)
