@@ -97,11 +97,13 @@ def _legacy_tracer(data):
 
 def _legacy_path(data):
     """Path settings written before the Fresnel became an option: those models were trained (and rendered) with
-    the paper's Schlick Fresnel (F90 = 1)."""
+    the paper's Schlick Fresnel (F90 = 1); before the reflection origin did, from the expected depth."""
     if data is None:
         data = {}
     if isinstance(data, dict) and "fresnel" not in data:
         data = {**data, "fresnel": "schlick"}
+    if isinstance(data, dict) and "reflection_origin" not in data:
+        data = {**data, "reflection_origin": "expected"}
     return data
 
 

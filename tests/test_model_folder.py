@@ -178,7 +178,8 @@ def test_model_yaml_from_before_the_traversal_option_still_loads(tmp_path):
 
 def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_path):
     """Models trained before ``path.fresnel`` existed were trained with F90 = 1: they load as "schlick"; a new
-    model writes its mode, and the default is "schlick_f90"."""
+    model writes its mode, and the default is "schlick_f90". Likewise ``path.reflection_origin``: older models
+    started reflections at the expected depth and load as "expected"; new ones write theirs (default "front")."""
     from models.gaussians import random_gaussians
     from models.pathtrace.paths import PathConfig
 
@@ -187,11 +188,12 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
     assert PathConfig().fresnel == "schlick_f90"
     assert yaml.safe_load((tmp_path / "m" / MODEL_FILE).read_text())["path"]["fresnel"] == "schlick_f90"
     assert read_settings(tmp_path / "m").path.fresnel == "schlick_f90"
+    assert read_settings(tmp_path / "m").path.reflection_origin == PathConfig().reflection_origin == "front"
     for path in ({"max_path_length": 3, "sampler": "vndf"}, None):
         (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, **({"path": path} if path else {})}))
-        assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick")
+        assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected")
     (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "path": {"fresnel": "fresnell"}}))
     with pytest.raises(ValueError, match="model.yaml path: fresnel must be one of"):
         read_settings(tmp_path / "m")
-    (tmp_path / "m" / MODEL_FILE).unlink()  # no model.yaml at all (older still): the defaults, with that Fresnel
-    assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick")
+    (tmp_path / "m" / MODEL_FILE).unlink()  # no model.yaml at all (older still): the defaults, that Fresnel and origin
+    assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected")

@@ -160,9 +160,12 @@ def test_saved_spec_replays_through_the_edit_stage(tmp_path):
     """Edits made in a session (move, duplicate and roughen the ball, recolour the box: two selections), saved as
     YAML, replay through the edit stage's library (apply_edit + render_view at equal spp and seed) and its CLI
     (python -m stages.edit apply --edit-file) to the viewer's accumulated, denoised image."""
+    from models.trained import read_settings
+
     write_ply(tmp_path / "tiny.ply", tiny_scene())
-    g = read_ply(tmp_path / "tiny.ply")  # as the CLI will read it
-    s = ViewerSession(g, {"ball": BALL, "box": BOX}, EDITS,
+    g = read_ply(tmp_path / "tiny.ply")  # as the CLI will read it, with the settings it reads (a bare PLY: the
+    # legacy ones, models/trained.py; `python -m stages.view` passes them too)
+    s = ViewerSession(g, {"ball": BALL, "box": BOX}, EDITS, model=read_settings(tmp_path / "tiny.ply"),
                       settings=ViewSettings(max_path_length=3, max_spp=6, denoise_after=4, seed=3))
     cam = tiny_camera(96, 72)
     s.set_camera(cam)

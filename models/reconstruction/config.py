@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from models.pathtrace.brdf import FRESNEL_MODES
-from models.pathtrace.paths import PathConfig
+from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig
 from models.settings import from_dict, setting
 from models.tracer.config import TracerConfig
 
@@ -77,6 +77,12 @@ class ReconstructConfig:
                            "F0): a surface with F0 = 0, a matte one, reflects nothing, as in the capture) | schlick "
                            "(F90 = 1, the paper's: F0 = 0 still reflects (1 - cos)^5); stored with the model",
                            enum=list(FRESNEL_MODES))
+    reflection_origin: str = setting(_PATH.reflection_origin, "where a reflection starts along the ray that met "
+                                     "the surface: front (the mean depth of the hits blended while the "
+                                     "transmittance is >= 0.5) | expected (the expected depth, the paper's: from "
+                                     "an angle no training camera saw it from, it lies inside a curved surface's "
+                                     "Gaussians, which then shadow its reflections: zoo_spheres, README); stored "
+                                     "with the model", enum=list(REFLECTION_ORIGINS))
     loss: LossWeights = setting(default_factory=LossWeights, doc="loss weights")
     lr: LearningRates = setting(default_factory=LearningRates, doc="learning rates")
     tracer: TracerConfig = setting(default_factory=TracerConfig, doc="ray tracer settings (kernel_p, "
@@ -162,7 +168,7 @@ class ReconstructConfig:
         diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
         so a scene scaled by any factor trains the same. Training adds ``min_throughput`` (``training_path``)."""
         return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler, fresnel=self.fresnel,
-                          origin_offset=self.origin_offset * scene_size)
+                          origin_offset=self.origin_offset * scene_size, reflection_origin=self.reflection_origin)
 
     def training_path(self, scene_size: float) -> PathConfig:
         """``path`` with the training-only path cut-off (``min_throughput``)."""

@@ -71,6 +71,9 @@ def front_hits_only(trace_fn: TraceFn, offset: float, stats: dict | None = None,
                 seg = dataclasses.replace(seg, **fields)
                 # depth from the first origin: the conditional depth grows by the shift
                 seg.depth[index] = seg.depth[index] + shift[index].to(seg.depth.dtype) * seg.opacity()[index, 0]
+                if seg.front_depth is not None:
+                    f = seg.front_depth[index]
+                    seg.front_depth[index] = torch.where(f > 0, f + shift[index].to(f.dtype), f)
                 back = torch.zeros_like(back).index_put((index,), (again.normal * dirs[index]).sum(-1) > 0)
             return dataclasses.replace(seg, normal=torch.where(back[:, None], torch.zeros_like(seg.normal),
                                                                seg.normal))

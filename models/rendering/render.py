@@ -18,7 +18,7 @@ from tqdm import tqdm
 from models.capture import Camera
 from models.gaussians import Gaussians
 from models.pathtrace.brdf import FRESNEL_MODES
-from models.pathtrace.paths import PathConfig, trace_paths
+from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig, trace_paths
 from models.settings import from_dict, setting
 
 from .denoise import denoise
@@ -36,6 +36,9 @@ class RenderConfig:
     sampler: str | None = setting(None, "vndf | ndf; null = the model's (model.yaml)", enum=["vndf", "ndf", None])
     fresnel: str | None = setting(None, "schlick_f90 | schlick; null = the model's (model.yaml)",
                                   enum=[*FRESNEL_MODES, None])
+    reflection_origin: str | None = setting(None, "front | expected (where a reflection starts: "
+                                            "reconstruct.reflection_origin); null = the model's (model.yaml)",
+                                            enum=[*REFLECTION_ORIGINS, None])
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
@@ -49,7 +52,8 @@ class RenderConfig:
 
     def path(self, model: PathConfig) -> PathConfig:
         """The model's path settings with this render's overrides."""
-        over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel") if getattr(self, k) is not None}
+        over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel", "reflection_origin")
+                if getattr(self, k) is not None}
         return dataclasses.replace(model, **over)
 
 
