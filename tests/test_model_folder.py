@@ -195,5 +195,8 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
     (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "path": {"fresnel": "fresnell"}}))
     with pytest.raises(ValueError, match="model.yaml path: fresnel must be one of"):
         read_settings(tmp_path / "m")
+    (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "path": {"reflection_origin": "middle"}}))
+    with pytest.raises(ValueError, match="model.yaml path: reflection_origin must be one of .*'middle'"):
+        read_settings(tmp_path / "m")
     (tmp_path / "m" / MODEL_FILE).unlink()  # no model.yaml at all (older still): the defaults, that Fresnel and origin
     assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected")

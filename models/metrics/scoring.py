@@ -112,20 +112,18 @@ def score_layer(pred: np.ndarray, target: np.ndarray, layer: str, reference: flo
     }
 
 
-def surface_points(view) -> np.ndarray:
-    """[H, W, 3] float64: each pixel's ground-truth surface point, camera + unit ray x depth (a distance; a pixel
-    whose depth is not finite or <= 0 gets the camera's centre)."""
+def surface_points(view) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W, 3] float64 each pixel's ground-truth surface point, camera + unit ray x depth (a distance), [H, W]
+    bool the pixel has a surface: a finite depth > 0; the others get the camera's centre)."""
     depth = view.buffers["depth"][..., 0].astype(np.float64)
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
-    return view.camera.origin + view.camera.ray_directions() * depth[..., None]
+    surface = np.isfinite(depth) & (depth > 0)
+    return view.camera.origin + view.camera.ray_directions() * np.where(surface, depth, 0.0)[..., None], surface
 
 
 def region_mask(view, box_min, box_max) -> np.ndarray:
     """[H, W] bool: pixels whose ground-truth surface point (camera + ray x depth) lies in the world box."""
-    points = surface_points(view)
-    depth = view.buffers["depth"][..., 0]
-    inside = np.all((points >= np.asarray(box_min)) & (points <= np.asarray(box_max)), axis=-1)
-    inside &= np.isfinite(depth) & (depth > 0)  # no surface: in no box
+    points, surface = surface_points(view)
+    inside = surface & np.all((points >= np.asarray(box_min)) & (points <= np.asarray(box_max)), axis=-1)
     if "mask" in view.buffers:
         inside &= view.buffers["mask"][..., 0] > 0.5
     return inside
@@ -141,9 +139,8 @@ def seen_mask(view, train_views) -> tuple[np.ndarray, np.ndarray] | None:
     keeps edges and grazing surfaces seen). None when a training view has no depth buffer (nothing to test)."""
     if not train_views or any("depth" not in t.buffers for t in train_views):
         return None
-    depth = view.buffers["depth"][..., 0].astype(np.float64)
-    surface = np.isfinite(depth) & (depth > 0)
-    points = surface_points(view).reshape(-1, 3)
+    points, surface = surface_points(view)
+    points = points.reshape(-1, 3)
     todo = surface.reshape(-1).copy()
     seen = np.zeros(len(points), dtype=bool)
     for t in train_views:
@@ -166,7 +163,7 @@ def seen_mask(view, train_views) -> tuple[np.ndarray, np.ndarray] | None:
                 with np.errstate(invalid="ignore"):
                     hit |= ok & (np.abs(r - dist) <= SEEN_TOLERANCE * dist)
         seen[idx[hit]] = True
-    return seen.reshape(depth.shape), surface
+    return seen.reshape(surface.shape), surface
 
 
 LPIPS_OFF = ("not computed: LPIPS needs local weight files (nothing is downloaded); turn it on with evaluate.lpips: "

@@ -10,9 +10,7 @@ import torch
 
 from models.gaussians.scene import Gaussians
 from models.tracer.config import TracerConfig
-from models.tracer.output import TraceOutput
-
-FRONT_TRANSMITTANCE = 0.5  # as models/tracer/blend.py
+from models.tracer.output import FRONT_TRANSMITTANCE, TraceOutput
 
 
 def cutoff_radius(opacities: torch.Tensor, p: int, alpha_min: float) -> torch.Tensor:

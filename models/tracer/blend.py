@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import warp as wp
 
+from models.tracer import output
 from models.tracer.structs import GaussianData, RayOutputs, Replay
 
-# front depth: the hits blended while the transmittance in front of them is at least this (output.TraceOutput)
-FRONT_TRANSMITTANCE = wp.constant(0.5)
+FRONT_TRANSMITTANCE = wp.constant(output.FRONT_TRANSMITTANCE)  # TraceOutput.front_depth
 
 
 @wp.struct

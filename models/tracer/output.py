@@ -8,6 +8,10 @@ import torch
 
 from models.capture.layers import TRACED, channels
 
+# TraceOutput.front_depth: the hits blended while the transmittance in front of them is at least this (the Warp
+# kernels' compositing step, models/tracer/blend.py, and the PyTorch twin read it here)
+FRONT_TRANSMITTANCE = 0.5
+
 # Differentiable per-ray layers, in the order the kernels pack them, with their channel count.
 LAYERS: dict[str, int] = channels(TRACED)
 
