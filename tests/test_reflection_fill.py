@@ -12,7 +12,7 @@ import torch
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.reflection_fill import (box_exit, highlight_fill_gaussians, matte_material,
+from models.reconstruction.reflection_fill import (box_exit, diffuse_level, highlight_fill_gaussians, matte_material,
                                                 reflection_fill_gaussians, seen_empty, sweep_box_scale)
 
 
@@ -191,3 +191,32 @@ def test_seen_empty_is_the_space_in_front_of_the_depth_buffer():
     pts = torch.tensor([[0.0, 0, -1], [0, 0, -3], [5, 0, -1], [0, 0, 1], [-0.45, 0.45, -1.0], [-2.25, 2.25, -5.0]])
     empty = seen_empty(pts, [view])
     assert empty.tolist() == [True, False, False, False, True, True]  # in front | behind | outside | behind the camera | no-hit pixel, near and far
+
+
+@pytest.mark.parametrize("with_layer", [True, False])
+def test_diffuse_level_leaves_out_the_lights_seen_directly(with_layer):
+    """The highlight threshold is the brightest LIT surface: a window filling 5 % of the frames (radiance 10)
+    must not become the level, or no reflection of another light would count as a highlight (zoo_lamps, zoo_lshape,
+    zoo_thin, zoo_mirror_metal: 0 highlight rays). Views without an emission layer cannot say which pixels are
+    lights: the level is then the plain percentile."""
+    from models.capture import View
+    from models.capture.camera import Camera
+
+    views, diffuse = [], []
+    for i in range(2):
+        cam = Camera(width=20, height=10, fl_x=10.0, fl_y=10.0, cx=10.0, cy=5.0, c2w=np.eye(4))
+        emission = np.zeros((10, 20, 3), np.float32)
+        emission[:, :1] = 9.5  # one column of 20: 5 % of the pixels show the window
+        rad = np.full((10, 20, 3), 0.5, np.float32) + emission
+        rad[0, 5:] = np.linspace(0.1, 0.5, 15)[:, None]  # some spread below the lit maximum
+        views.append(View(name=f"v{i}", camera=cam, split="train",
+                          buffers={"emission": emission} if with_layer else {}))
+        diffuse.append(torch.tensor(rad.reshape(-1, 3)))
+    n = 400
+    rays = RaySet(torch.zeros(n, 3), torch.tensor([[0.0, 0, -1]]).repeat(n, 1), torch.ones(n, dtype=torch.bool),
+                  {"diffuse": torch.cat(diffuse)}, torch.arange(2).repeat_interleave(200), views)
+    level = diffuse_level(rays, torch.Generator().manual_seed(0))
+    assert level == pytest.approx(0.5 if with_layer else 10.0, rel=1e-3)
+    # a subset of the rays is no longer the views' pixels in order: nothing is known to be a light there
+    subset = rays.subset(torch.arange(300))
+    assert diffuse_level(subset, torch.Generator().manual_seed(0)) == pytest.approx(10.0, rel=1e-3)
