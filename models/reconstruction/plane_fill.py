@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
 
-from .reflection_fill import seen_empty
+from .reflection_fill import emitting_rays, seen_empty
 
 SCALE = 0.8  # the fill's Gaussians' scale, x the grid spacing: with opacity 0.9 a wall lets < 1 % through
 COS_NORMAL = math.cos(math.radians(15.0))  # a point's normal within this of the plane's: the plane's point
@@ -74,20 +74,10 @@ def pixel_points(rays, max_points: int, seed: int = 0) -> dict[str, np.ndarray] 
     out["diffuse"] = t["diffuse"][idx].reshape(n, 3) if "diffuse" in t else torch.full((n, 3), 0.5)
     out["f0"] = t["f0"][idx].reshape(n, 3) if "f0" in t else torch.full((n, 3), 0.04)
     out["roughness"] = t["roughness"][idx].reshape(n) if "roughness" in t else torch.full((n,), 1.0)
-    emitting = np.concatenate([_emitting(v) for v in rays.views])
-    emitting = emitting[idx.numpy()] if len(emitting) == len(depth) else np.zeros(len(idx), dtype=bool)  # a subset
+    emitting = emitting_rays(rays)[idx.numpy()]
     arrays = {k: v.detach().double().cpu().numpy() for k, v in out.items()}
     arrays["emitting"] = emitting
     return arrays
-
-
-def _emitting(view) -> np.ndarray:
-    """[H*W] bool: the view's pixels that show a light source (its ``emission`` layer > 0; none without it)."""
-    h, w = view.camera.height, view.camera.width
-    em = view.buffers.get("emission")
-    if em is None:
-        return np.zeros(h * w, dtype=bool)
-    return np.asarray(em).reshape(h * w, -1).max(-1) > 0
 
 
 def find_planes(points: np.ndarray, normals: np.ndarray, tol: float, min_points: int = 100, seeds: int = 256,

@@ -96,23 +96,23 @@ def diffuse_level(rays, gen: torch.Generator) -> float:
     level to the lights' radiance, 6.0-9.5 against 0.34-0.45 without them, and no reflection counted as a
     highlight: zoo_lamps, zoo_lshape, zoo_thin and zoo_mirror_metal had 0 highlight rays.)"""
     t = rays.targets
-    direct = torch.nonzero(rays.mask & ~_emitting(rays)).reshape(-1)
+    direct = torch.nonzero(rays.mask & ~torch.from_numpy(emitting_rays(rays))).reshape(-1)
     direct = direct[torch.randperm(len(direct), generator=gen)[:200000]]
     lum = torch.tensor(LUMINANCE, dtype=t["diffuse"].dtype)
     return max(float(torch.quantile(t["diffuse"][direct] @ lum, 0.99)) if len(direct) else 0.0, 1e-6)
 
 
-def _emitting(rays) -> torch.Tensor:
+def emitting_rays(rays) -> np.ndarray:
     """[R] bool: the rays whose pixel shows a light (``emission`` > 0 in its view's buffers); none for views without
-    that layer, or for a ray set that is not its views' pixels in order (``build_rayset``)."""
+    that layer, or for a ray set that is not its views' pixels in order (``build_rayset``; a subset)."""
     parts = []
     for view in rays.views:
         n = view.camera.width * view.camera.height
         em = view.buffers.get("emission")
-        parts.append(np.zeros(n, bool) if em is None else em.reshape(n, -1).max(-1) > 0)
+        parts.append(np.zeros(n, bool) if em is None else np.asarray(em).reshape(n, -1).max(-1) > 0)
     if not parts or sum(len(p) for p in parts) != len(rays):
-        return torch.zeros(len(rays), dtype=torch.bool)
-    return torch.from_numpy(np.concatenate(parts))
+        return np.zeros(len(rays), dtype=bool)
+    return np.concatenate(parts)
 
 
 def mirror_rays(rays, max_rays: int, seed: int = 0,
