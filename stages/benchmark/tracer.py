@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
+from models.profiling import device_sync
 from models.tracer import Tracer, TracerConfig
 from stages.benchmark.scene import SCENE_TYPES, benchmark_scene, pinhole_rays, scene_type
 
@@ -66,13 +67,16 @@ class TracerBenchmarkConfig:
                                      scene_n=3000)
 
 
-def _best(fn, repeats: int) -> tuple[float, float]:
-    """(best wall ms, CPU ms of that run) over `repeats` calls after one warm-up."""
+def _best(fn, repeats: int, sync=lambda: None) -> tuple[float, float]:
+    """(best wall ms, CPU ms of that run) over `repeats` calls after one warm-up; ``sync`` waits for the device
+    (device_sync: CUDA launches return before the kernels finish)."""
     fn()
+    sync()
     best = (math.inf, math.inf)
     for _ in range(repeats):
         c0, w0 = time.process_time(), time.perf_counter()
         fn()
+        sync()
         w, c = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
         if w < best[0]:
             best = (w, c)
@@ -82,6 +86,7 @@ def _best(fn, repeats: int) -> tuple[float, float]:
 def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
     threads = max(cfg.threads)
     tracer = Tracer(_config(cfg, threads), cfg.device)
+    sync = device_sync(cfg.device)
     tdev = tracer.torch_device  # scene, rays and targets where the tracer reads them without copies
     gs = benchmark_scene(n, cfg.seed).to(device=tdev).requires_grad_()
     origins, dirs = (t.to(tdev) for t in pinhole_rays(res))
@@ -92,7 +97,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
             return tr.trace(origins, dirs, gs)
 
     out = forward()
-    row["forward_ms"], row["forward_cpu_ms"] = _best(forward, cfg.repeats)
+    row["forward_ms"], row["forward_cpu_ms"] = _best(forward, cfg.repeats, sync)
 
     targets = {"diffuse": torch.full((res * res, 3), 0.5), "depth": torch.ones(res * res),
                "normal": torch.zeros(res * res, 3), "roughness": torch.full((res * res,), 0.3),
@@ -105,7 +110,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
             v.grad = None
         return tracer.trace_fused(origins, dirs, gs, targets, weights)
 
-    row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats)
+    row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats, sync)
 
     def autograd_step():
         for v in gs.params().values():
@@ -114,26 +119,26 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
         loss = sum(w * (o.layer(k) - targets[k].reshape(res * res, -1)).abs().mean() for k, w in weights.items())
         loss.backward()
 
-    row["autograd_forward_backward_ms"], _ = _best(autograd_step, cfg.repeats)
+    row["autograd_forward_backward_ms"], _ = _best(autograd_step, cfg.repeats, sync)
     row["fused_over_forward"] = row["forward_backward_ms"] / row["forward_ms"]
 
-    row["refit_ms"], row["refit_cpu_ms"] = _best(lambda: tracer.update(gs), cfg.repeats)
-    row["rebuild_ms"], row["rebuild_cpu_ms"] = _best(lambda: tracer.update(gs, rebuild=True), cfg.repeats)
+    row["refit_ms"], row["refit_cpu_ms"] = _best(lambda: tracer.update(gs), cfg.repeats, sync)
+    row["rebuild_ms"], row["rebuild_cpu_ms"] = _best(lambda: tracer.update(gs, rebuild=True), cfg.repeats, sync)
     row["step_ms"] = row["forward_backward_ms"] + row["refit_ms"]
     row["refit_share"] = row["refit_ms"] / row["step_ms"]
     row["rebuild_share"] = row["rebuild_ms"] / (row["forward_backward_ms"] + row["rebuild_ms"])
 
     kbuf = Tracer(_config(cfg, threads, traversal="kbuffer"), cfg.device)
-    row["kbuffer_forward_ms"], row["kbuffer_forward_cpu_ms"] = _best(lambda: forward(kbuf), cfg.repeats)
+    row["kbuffer_forward_ms"], row["kbuffer_forward_cpu_ms"] = _best(lambda: forward(kbuf), cfg.repeats, sync)
     row["single_vs_kbuffer_speedup"] = row["kbuffer_forward_ms"] / row["forward_ms"]
 
     aabb = Tracer(_config(cfg, threads, world_aabb_only=True), cfg.device)
-    row["aabb_forward_ms"], row["aabb_forward_cpu_ms"] = _best(lambda: forward(aabb), cfg.repeats)
+    row["aabb_forward_ms"], row["aabb_forward_cpu_ms"] = _best(lambda: forward(aabb), cfg.repeats, sync)
 
     # stretch: own BVH traversed front to back with early termination
     ordered = Tracer(_config(cfg, threads, traversal="ordered"), cfg.device)
     out_ordered = forward(ordered)
-    row["ordered_forward_ms"], row["ordered_forward_cpu_ms"] = _best(lambda: forward(ordered), cfg.repeats)
+    row["ordered_forward_ms"], row["ordered_forward_cpu_ms"] = _best(lambda: forward(ordered), cfg.repeats, sync)
     row["ordered_candidates_per_ray"] = float(out_ordered.candidates.float().mean())
     row["ordered_hits_found_per_ray"] = float(out_ordered.hit_count.float().mean())
 
@@ -151,6 +156,7 @@ def bench_one(n: int, res: int, cfg: TracerBenchmarkConfig) -> dict:
         for t, tr in tracers.items():
             w0 = time.perf_counter()
             forward(tr)
+            sync()
             best[t] = min(best[t], (time.perf_counter() - w0) * 1e3)
     row["forward_ms_by_threads"] = {str(t): v for t, v in best.items()}
     row["thread_scaling"] = best[min(tracers)] / best[max(tracers)]
@@ -176,6 +182,7 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     threads = max(cfg.threads)
     ours = Tracer(_config(cfg, threads, octant_bvh=cfg.octants), cfg.device)
     single = Tracer(_config(cfg, threads, traversal="single"), cfg.device)
+    sync = device_sync(cfg.device)
     gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
     mitsuba_input = gs  # (the CPU copy: Mitsuba builds its scene from host arrays)
     tdev = ours.torch_device
@@ -194,11 +201,13 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
         mitsuba = MitsubaEllipsoids(mitsuba_input, TracerConfig(), cfg.device)
         timed["mitsuba"] = lambda: mitsuba.render(origins, dirs)
     results = {k: fn() for k, fn in timed.items()}  # warm-up: kernel compilation, BVH / JIT
+    sync()
     best = {k: (math.inf, math.inf) for k in timed}
     for _ in range(cfg.repeats):
         for k, fn in timed.items():
             c0, w0 = time.process_time(), time.perf_counter()
             results[k] = fn()
+            sync()
             w, c = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
             best[k] = min(best[k], (w, c))
     out, ref = results["ours"], results["single"]
@@ -220,8 +229,14 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
         row["floor_rays"] = floor["rays"]
     row["accepted_per_ray"] = float(ref.hit_count.float().mean())  # every accepted hit (single traversal)
     row["hits_found_per_ray"] = float(out.hit_count.float().mean())  # found before the ray stopped
-    row["same_as_single"] = bool(torch.equal(out.blended_count, ref.blended_count)
-                                 and (out.diffuse - ref.diffuse).abs().max() < 1e-4)
+    # rays where the two traversals disagree (blended count, or colour by > 1e-4): none on the CPU (the same float
+    # operations in the same order); on CUDA a few per 262k rays, each within 1e-4 of flipping a decision
+    # (a near-tie of two t*, alpha at alpha_min, T at the threshold) by the float64 reference's ambiguity test
+    colour_diff = (out.diffuse - ref.diffuse).abs().amax(dim=1)
+    differ = (out.blended_count != ref.blended_count) | (colour_diff > 1e-4)
+    row["single_differing_rays"] = int(differ.sum())
+    row["single_max_abs_diff"] = float(colour_diff.max()) if len(colour_diff) else 0.0
+    row["same_as_single"] = row["single_differing_rays"] == 0
     if cfg.mitsuba:
         rgb, _, _, _ = results["mitsuba"]
         row["mitsuba_ms"], row["mitsuba_cpu_ms"] = best["mitsuba"]
@@ -236,7 +251,7 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
             v.grad = None
         return ours.trace_fused(origins, dirs, gs, {"diffuse": target}, {"diffuse": 1.0})
 
-    row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats)
+    row["forward_backward_ms"], row["forward_backward_cpu_ms"] = _best(fused, cfg.repeats, sync)
     row["fused_over_forward"] = row["forward_backward_ms"] / row["forward_ms"]
     row["fused_over_forward_cpu"] = row["forward_backward_cpu_ms"] / row["forward_cpu_ms"]
     for tr in (ours, single):
