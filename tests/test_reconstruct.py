@@ -358,7 +358,7 @@ def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carr
     are."""
     capture, init = demo
     cfg = dict(SMALL, iterations=20, warmup=10, prune_from=10, prune_every=10, checkpoint_every=20,
-               plane_fill_count=4000)
+               plane_fill_count=4000, sphere_fill=False)  # (the demo's chrome ball: sphere_fill's own test)
     trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
     n_prior = int(trainer.prior.sum())
     assert 0 < n_prior <= 4000 and len(trainer.params["means"]) == len(init.means) + n_prior
@@ -380,8 +380,22 @@ def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carr
     again = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
     again.load_checkpoint(tmp_path / "last.pt")
     assert torch.equal(again.prior, trainer.prior)
-    off = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0)), tracer())
+    off = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0, sphere_fill=False)),
+                  tracer())
     assert not off.prior.any() and not any(d.startswith("plane fill") for d in off.decisions)
+
+
+def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo):
+    """``sphere_fill``: the Gaussians on the unseen sides of fitted spheres (tests/test_sphere_fill.py) join the
+    prior (the plane fill's rules), their number and every piece tried in the decisions; off (the default): none."""
+    capture, init = demo
+    on = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0, sphere_fill=True)),
+                 tracer())
+    line = next(d for d in on.decisions if d.startswith("sphere fill: ") and "Gaussians on the unseen" in d)
+    assert int(line.split()[2]) == int(on.prior.sum()) == len(on.params["means"]) - len(init.means)
+    assert ReconstructConfig().sphere_fill is False
+    off = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0)), tracer())
+    assert not off.prior.any() and not any(d.startswith("sphere fill") for d in off.decisions)
 
 
 def test_prior_smoothness_pulls_a_fill_colour_toward_its_neighbours_and_survives_pruning(demo):

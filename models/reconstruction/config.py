@@ -121,6 +121,11 @@ class ReconstructConfig:
                                     "warm-up, geometry frozen, never pruned for want of blending weight "
                                     "(plane_fill.py; zoo_lamps tonemapped final 26.0 -> 29.9); 0 = off (the paper)",
                                     minimum=0)
+    sphere_fill: bool = setting(False, "Gaussians on the unseen far sides of round shiny objects: a sphere fitted "
+                                "to each piece of shiny pixel points that is one (residual, normals, arc), the rest "
+                                "of it covered, added with the plane fill's (geometry frozen, never pruned for want "
+                                "of weight; sphere_fill.py). Off: it fixes zoo_spheres' far-side normals (66 -> 23 "
+                                "degrees) but no score (final 23.31 -> 23.06; README)")
     close_room: bool = setting(True, "with the far field and the plane fill: walls no training view looks at (behind "
                                "the cameras, a ceiling above every frame), placed at the end of warm-up where sharp "
                                "reflections, curved mirrors too, agree on them (room_closing.py); a side whose "

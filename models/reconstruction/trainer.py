@@ -39,7 +39,8 @@ from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
-from .plane_fill import extend_plane_fill, plane_fill_gaussians
+from .plane_fill import extend_plane_fill, pixel_points, plane_fill_gaussians
+from .sphere_fill import sphere_fill_gaussians
 from .room_closing import close_room, keep_inside
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
@@ -167,10 +168,35 @@ class Trainer:
         return True
 
     def _plane_fill(self, init: Gaussians) -> tuple[Gaussians, int]:
-        """``init`` with the plane fill's Gaussians appended (``plane_fill_count`` > 0), and their count."""
+        """``init`` with the prior's Gaussians appended: the plane fill's (``plane_fill_count`` > 0) and the sphere
+        completion's (``sphere_fill``); and their count."""
         self._room = None
-        if self.config.plane_fill_count <= 0:
+        fills = []
+        if self.config.plane_fill_count > 0:
+            fills.append(self._planes())
+        if self.config.sphere_fill:
+            fills.append(self._spheres())
+        fills = [f for f in fills if f is not None]
+        if not fills:
             return init, 0
+        fill = Gaussians.cat(fills).to(init.device, init.dtype)
+        return Gaussians.cat([init.to(), fill]), len(fill)
+
+    def _spheres(self) -> Gaussians | None:
+        """The sphere completion's Gaussians (sphere_fill.py), from the plane fill's pixel points when it ran."""
+        src = self._room.src if self._room is not None else pixel_points(self.rays, 400000, seed=self.config.seed)
+        if src is None or len(src["points"]) < 100:
+            self.decisions.append("sphere fill: off, the capture has no depth and normal buffers on enough pixels")
+            return None
+        lo, hi = np.quantile(src["points"], [0.005, 0.995], axis=0)
+        fill, stats = sphere_fill_gaussians(src, self.rays, float((hi - lo).max()))
+        self.decisions.append(f"sphere fill: {stats['added']} Gaussians on the unseen parts of {stats['spheres']} "
+                              "round shiny objects")
+        self.decisions.extend(f"sphere fill: {note}" for note in stats["notes"])
+        return fill
+
+    def _planes(self) -> Gaussians | None:
+        """The plane fill's Gaussians (plane_fill.py); keeps the room it found for the later fills."""
         fill, stats = plane_fill_gaussians(self.rays, self.config.plane_fill_count, seed=self.config.seed)
         self._room = stats["room"]  # the planes and box found, for the fill behind the cameras (extend_plane_fill)
         message = (f"plane fill: {stats['added']} Gaussians on the unseen parts of {stats['bounding']} planes that "
@@ -179,10 +205,7 @@ class Trainer:
         self.decisions.append(message)
         for note in stats.get("notes", ()):
             self.decisions.append(note)
-        if fill is None:
-            return init, 0
-        fill = fill.to(init.device, init.dtype)
-        return Gaussians.cat([init.to(), fill]), len(fill)
+        return fill
 
     def _needs_far_field(self, init: Gaussians, closed: Gaussians) -> bool:
         """``init``: what the cameras saw (the mirror test); ``closed``: it with the plane fill (the view test)."""
