@@ -60,7 +60,10 @@ def _cast(o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def _view(i: int, position, target, size=(64, 48), fl=30.0) -> View:
+def _view(i: int, position, target, size=(64, 48), fl=30.0, cast=None) -> View:
+    """A training view at ``position`` looking at ``target``, its buffers from ``cast(origin, dirs)`` (default:
+    this room's ``_cast``)."""
+    cast = _cast if cast is None else cast
     position, target = np.asarray(position, float), np.asarray(target, float)
     f = (target - position) / np.linalg.norm(target - position)
     right = np.cross(f, [0.0, 1.0, 0.0])
@@ -70,7 +73,7 @@ def _view(i: int, position, target, size=(64, 48), fl=30.0) -> View:
     w, h = size
     cam = Camera(width=w, height=h, fl_x=fl, fl_y=fl, cx=w / 2, cy=h / 2, c2w=c2w)
     d = cam.ray_directions().reshape(-1, 3)
-    hit = _cast(cam.origin, d)
+    hit = cast(cam.origin, d)
     buffers = {k: v.reshape(h, w, -1).astype(np.float32) for k, v in hit.items()}
     buffers["mask"] = (buffers["depth"] > 0).astype(np.float32)
     buffers["specular"] = np.zeros((h, w, 3), np.float32)

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
-from models.capture import View
-from models.capture.camera import Camera
 from models.reconstruction.data import RaySet
 from models.reconstruction.plane_fill import pixel_points
 from models.reconstruction.sphere_fill import find_spheres, fit_sphere, sphere_fill_gaussians
+from tests.test_plane_fill import _rays as plane_rays
+from tests.test_plane_fill import _view as plane_view
 
 BALL_C, BALL_R = np.array([0.0, 0.3, -1.0]), 0.3
 CYL_X, CYL_Z, CYL_R, CYL_H = 0.9, -1.1, 0.2, 0.8  # vertical metal cylinder, y in [0, CYL_H]
@@ -77,37 +76,10 @@ def _cast(o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def _view(i: int, position, target, size=(96, 72), fl=60.0) -> View:
-    position, target = np.asarray(position, float), np.asarray(target, float)
-    f = (target - position) / np.linalg.norm(target - position)
-    right = np.cross(f, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, f), -f, position
-    w, h = size
-    cam = Camera(width=w, height=h, fl_x=fl, fl_y=fl, cx=w / 2, cy=h / 2, c2w=c2w)
-    hit = _cast(cam.origin, cam.ray_directions().reshape(-1, 3))
-    buffers = {k: v.reshape(h, w, -1).astype(np.float32) for k, v in hit.items()}
-    buffers["mask"] = (buffers["depth"] > 0).astype(np.float32)
-    return View(name=f"v{i}", camera=cam, split="train", buffers=buffers)
-
-
 def _rays() -> RaySet:
     """Cameras on the front half (z > -1) round the ball, looking at it from above."""
-    views = [_view(i, (1.4 * np.sin(a), 1.0, -1.0 + 1.4 * np.cos(a)), BALL_C)
-             for i, a in enumerate(np.radians(np.linspace(-60, 60, 6)))]
-    o, d, m, targets, vid = [], [], [], {k: [] for k in ("depth", "normal", "diffuse", "f0", "roughness")}, []
-    for i, v in enumerate(views):
-        dirs = v.camera.ray_directions().reshape(-1, 3)
-        o.append(np.broadcast_to(v.camera.origin, dirs.shape))
-        d.append(dirs)
-        m.append(v.buffers["mask"].reshape(-1) > 0.5)
-        vid.append(np.full(len(dirs), i))
-        for k in targets:
-            targets[k].append(v.buffers[k].reshape(len(dirs), -1))
-    t = lambda a: torch.tensor(np.concatenate(a), dtype=torch.float32)  # noqa: E731
-    return RaySet(t(o), t(d), torch.tensor(np.concatenate(m)), {k: t(v) for k, v in targets.items()},
-                  torch.tensor(np.concatenate(vid)), views)
+    return plane_rays([plane_view(i, (1.4 * np.sin(a), 1.0, -1.0 + 1.4 * np.cos(a)), BALL_C, size=(96, 72), fl=60.0,
+                                  cast=_cast) for i, a in enumerate(np.radians(np.linspace(-60, 60, 6)))])
 
 
 @pytest.fixture(scope="module")
