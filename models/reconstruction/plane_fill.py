@@ -159,8 +159,8 @@ def _grid(n: np.ndarray, d: float, lo: np.ndarray, hi: np.ndarray, h: float) -> 
 
 def _surfels(pos: np.ndarray, normal: np.ndarray, h: float, opacity: float, diffuse: np.ndarray,
              roughness: np.ndarray | float, f0: np.ndarray | float, dtype) -> Gaussians:
-    """Isotropic opaque surfels (scale ``SCALE`` h) at ``pos`` [n, 3] facing ``normal``, of the given material
-    (diffuse [n, 3]; roughness [n] and f0 [n, 3], or one value for all)."""
+    """Isotropic opaque surfels (scale ``SCALE`` h) at ``pos`` [n, 3] facing ``normal`` ([3] for all, or [n, 3]),
+    of the given material (diffuse [n, 3]; roughness [n] and f0 [n, 3], or one value for all)."""
     n = len(pos)
     f = dict(dtype=dtype)
     return Gaussians(
@@ -169,7 +169,7 @@ def _surfels(pos: np.ndarray, normal: np.ndarray, h: float, opacity: float, diff
         log_scales=torch.full((n, 3), math.log(SCALE * h), **f),
         opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), **f),
         diffuse=torch.tensor(diffuse, **f).clamp_min(0.0).reshape(n, 3),
-        normals=torch.tensor(normal, **f).reshape(1, 3).repeat(n, 1),
+        normals=torch.tensor(normal, **f).reshape(-1, 3).expand(n, 3).clone(),
         roughness=torch.as_tensor(roughness, **f).clamp(0.0, 1.0).expand(n).reshape(n),
         f0=torch.as_tensor(f0, **f).clamp(0.0, 1.0).expand(n, 3).reshape(n, 3),
     )

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
 
-from .plane_fill import SCALE
+from .plane_fill import _surfels
 from .reflection_fill import seen_empty
 
 MAX_RESIDUAL_MEDIAN = 0.02   # x r: a sphere's points lie on it
@@ -180,16 +180,8 @@ def sphere_fill_gaussians(src: dict | None, rays, size: float, opacity: float = 
         _, near = cKDTree(pts[members]).query(cand, k=k)
         near = members[np.asarray(near).reshape(len(cand), k)]
         med = lambda a: np.median(a[near], axis=1)  # noqa: E731
-        f = dict(dtype=dtype)
-        parts.append(Gaussians(
-            means=torch.tensor(cand, **f),
-            quats=torch.tensor([[1.0, 0, 0, 0]], **f).repeat(len(cand), 1),
-            log_scales=torch.full((len(cand), 3), math.log(SCALE * h), **f),
-            opacity_logits=torch.full((len(cand),), math.log(opacity / (1 - opacity)), **f),
-            diffuse=torch.tensor(med(src["diffuse"]), **f).clamp_min(0.0),
-            normals=torch.tensor(dirs, **f),
-            roughness=torch.tensor(med(src["roughness"]), **f).clamp(0.0, 1.0).reshape(-1),
-            f0=torch.tensor(med(src["f0"]), **f).clamp(0.0, 1.0)))
+        parts.append(_surfels(cand, dirs, h, opacity, med(src["diffuse"]), med(src["roughness"]).reshape(-1),
+                              med(src["f0"]), dtype))
         stats["spheres"] += 1
     if not parts:
         return None, stats
