@@ -385,14 +385,36 @@ def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carr
     assert not off.prior.any() and not any(d.startswith("plane fill") for d in off.decisions)
 
 
-def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo):
+def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo, tmp_path):
     """``sphere_fill``: the Gaussians on the unseen sides of fitted spheres (tests/test_sphere_fill.py) join the
-    prior (the plane fill's rules), their number and every piece tried in the decisions; off (the default): none."""
+    prior, after the plane fill's, their number and every piece tried in the decisions; nothing of theirs trains
+    (``fixed``: no gradient reaches any of their parameters, the plane fill's keep colour, material and opacity),
+    through pruning and a checkpoint; off (the default): none."""
     capture, init = demo
-    on = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0, sphere_fill=True)),
-                 tracer())
+    cfg = dict(SMALL, plane_fill_count=4000, sphere_fill=True)
+    on = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
     line = next(d for d in on.decisions if d.startswith("sphere fill: ") and "Gaussians on the unseen" in d)
-    assert int(line.split()[2]) == int(on.prior.sum()) == len(on.params["means"]) - len(init.means)
+    n_sphere = int(line.split()[2])
+    assert n_sphere > 0 and int(on.fixed.sum()) == n_sphere and on.fixed[-n_sphere:].all()
+    planes = next(d for d in on.decisions if d.startswith("plane fill: "))
+    assert int(on.prior.sum()) == n_sphere + int(planes.split()[2]) == len(on.params["means"]) - len(init.means)
+    assert not (on.fixed & ~on.prior).any()
+    for p in on.params.values():
+        p.grad = torch.ones_like(p)
+    on._freeze_priors()
+    plane_rows = on.prior & ~on.fixed
+    for name, p in on.params.items():
+        assert bool((p.grad[on.fixed] == 0).all()), name
+        assert bool((p.grad[plane_rows] == 0).all()) == (name in ("means", "quats", "log_scales")), name
+        assert bool((p.grad[~on.prior] == 1).all()), name
+        p.grad = None
+    on.config = dataclasses.replace(on.config, prune_min_weight=1e9)
+    on.prune()  # the priors stay, the fixed ones still last
+    assert int(on.fixed.sum()) == n_sphere and on.fixed[-n_sphere:].all()
+    on.save_checkpoint(tmp_path / "last.pt")
+    again = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    again.load_checkpoint(tmp_path / "last.pt")
+    assert torch.equal(again.fixed, on.fixed)
     assert ReconstructConfig().sphere_fill is False
     off = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0)), tracer())
     assert not off.prior.any() and not any(d.startswith("sphere fill") for d in off.decisions)

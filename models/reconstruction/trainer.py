@@ -85,7 +85,7 @@ class Trainer:
         self.peak = hdr.peak(float(final.max())) if final.numel() else 1.0
         # the far field is decided on what the cameras saw, not on the prior: the plane fill closes a room's box
         # where it can, and what lies outside that box (a wall never seen, behind the cameras) is the far field's
-        with_fill, n_prior = self._plane_fill(init)
+        with_fill, n_prior, n_fixed = self._plane_fill(init)
         self.far_field = self._needs_far_field(init, with_fill)
         init = with_fill
         self.generator = torch.Generator().manual_seed(config.seed)
@@ -112,6 +112,10 @@ class Trainer:
         self.prior[len(self.prior) - n_prior:] = True
         self._prior_rows: torch.Tensor | None = None  # rows of ``prior`` (made when first needed), see _freeze_priors
         self._prior_nbrs: torch.Tensor | None = None  # [P, 8] each prior Gaussian's nearest priors (_prior_smooth)
+        # the sphere completion's Gaussians (the last priors): nothing of theirs trains, see _freeze_priors
+        self.fixed = torch.zeros_like(self.prior)
+        self.fixed[len(self.fixed) - n_fixed:] = True
+        self._fixed_rows: torch.Tensor | None = None
         # Gaussians the mirror fills placed (seen only in reflections): no buffer sees their material
         self.reflected = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self._reflected_rows: torch.Tensor | None = None
@@ -167,20 +171,17 @@ class Trainer:
                               f"max path length {self.config.max_path_length}{longer}{stop}")
         return True
 
-    def _plane_fill(self, init: Gaussians) -> tuple[Gaussians, int]:
-        """``init`` with the prior's Gaussians appended: the plane fill's (``plane_fill_count`` > 0) and the sphere
-        completion's (``sphere_fill``); and their count."""
+    def _plane_fill(self, init: Gaussians) -> tuple[Gaussians, int, int]:
+        """``init`` with the prior's Gaussians appended: the plane fill's (``plane_fill_count`` > 0), then the
+        sphere completion's (``sphere_fill``); their count, and the sphere completion's (the last ones)."""
         self._room = None
-        fills = []
-        if self.config.plane_fill_count > 0:
-            fills.append(self._planes())
-        if self.config.sphere_fill:
-            fills.append(self._spheres())
-        fills = [f for f in fills if f is not None]
+        planes = self._planes() if self.config.plane_fill_count > 0 else None
+        spheres = self._spheres() if self.config.sphere_fill else None
+        fills = [f for f in (planes, spheres) if f is not None]
         if not fills:
-            return init, 0
+            return init, 0, 0
         fill = Gaussians.cat(fills).to(init.device, init.dtype)
-        return Gaussians.cat([init.to(), fill]), len(fill)
+        return Gaussians.cat([init.to(), fill]), len(fill), 0 if spheres is None else len(spheres)
 
     def _spheres(self) -> Gaussians | None:
         """The sphere completion's Gaussians (sphere_fill.py), from the plane fill's pixel points when it ran."""
@@ -312,13 +313,15 @@ class Trainer:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
             self.reflected = self.reflected[keep.to(self.reflected.device)]
-            self._prior_rows = self._reflected_rows = None
+            self.fixed = self.fixed[keep.to(self.fixed.device)]
+            self._prior_rows = self._reflected_rows = self._fixed_rows = None
         if extra is not None:
             self.prior = torch.cat([self.prior, torch.full((len(extra),), prior, dtype=torch.bool,
                                                            device=self.prior.device)])
             self.reflected = torch.cat([self.reflected, torch.full((len(extra),), anchored, dtype=torch.bool,
                                                                    device=self.reflected.device)])
-            self._prior_rows = self._reflected_rows = None
+            self.fixed = torch.cat([self.fixed, torch.zeros(len(extra), dtype=torch.bool, device=self.fixed.device)])
+            self._prior_rows = self._reflected_rows = self._fixed_rows = None
         if extra is not None and anchored and self.config.fill_anchor > 0:
             extra = facing_surfels(extra)
             first = len(self.params["means"]) - (0 if keep is None else int((~keep).sum()))
@@ -700,6 +703,7 @@ class Trainer:
             "anchors": self.anchors.state_dict(),
             "prior": self.prior.clone(),
             "reflected": self.reflected.clone(),
+            "fixed": self.fixed.clone(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -714,7 +718,8 @@ class Trainer:
         self.generator.set_state(state["generator"])
         self.prior = state.get("prior", torch.zeros(len(self.params["means"]), dtype=torch.bool)).to(self.device)
         self.reflected = state.get("reflected", torch.zeros_like(self.prior)).to(self.device)
-        self._prior_rows = self._reflected_rows = None
+        self.fixed = state.get("fixed", torch.zeros_like(self.prior)).to(self.device)
+        self._prior_rows = self._reflected_rows = self._fixed_rows = None
         self.anchors = Anchors(self.device, self.params["means"].dtype)
         if "anchors" in state:
             self.anchors.load_state_dict(state["anchors"])
@@ -722,9 +727,10 @@ class Trainer:
     def _cached_rows(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows of ``prior`` and of ``reflected``, found again only after they change (_replace, load_state_dict:
         no device read-back per step)."""
-        if self._prior_rows is None:
+        if self._prior_rows is None or self._fixed_rows is None:
             self._prior_rows = torch.nonzero(self.prior).reshape(-1)
             self._reflected_rows = torch.nonzero(self.reflected).reshape(-1)
+            self._fixed_rows = torch.nonzero(self.fixed).reshape(-1)
         return self._prior_rows, self._reflected_rows
 
     def _prior_smooth(self) -> torch.Tensor:
@@ -750,7 +756,9 @@ class Trainer:
         """The prior's Gaussians (plane_fill.py) keep their place, size and orientation on the plane: their geometry
         gradients are zeroed (Adam's moments stay 0, so they never move). Reflections alone pin down no depth:
         trained free they swelled into blobs (zoo_corridor: a floor Gaussian grew 1 m tall). Their colour,
-        material and opacity train.
+        material and opacity train; the sphere completion's (``fixed``) keep everything they were made with: a
+        ball's far side is seen only in what it reflects, and trained free it turned see-through (zoo_spheres:
+        opacity 0.9 -> a median 0.16-0.30 on the four balls), showing the backs of the seen half's surfels.
 
         With ``fill_matte``, the mirror fills' Gaussians (``reflected``) keep the matte material they were made
         with: the buffers see only what the cameras face, so nothing but the reflections' colour would set their
@@ -758,7 +766,7 @@ class Trainer:
         (zoo_mirror_only: mirror-stereo Gaussians in front of the urn became F0 0.45, roughness 0.26, 0.8 m
         across, and the test views looking at the urn saw reflections in the air)."""
         self._cached_rows()
-        frozen = [(self._prior_rows, ("means", "quats", "log_scales"))]
+        frozen = [(self._prior_rows, ("means", "quats", "log_scales")), (self._fixed_rows, tuple(self.params))]
         if self.config.fill_matte:
             frozen.append((self._reflected_rows, ("f0", "roughness")))
         for rows, names in frozen:
