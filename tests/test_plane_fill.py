@@ -219,6 +219,62 @@ def test_a_light_on_a_wall_does_not_give_its_radiance_to_the_walls_unseen_part()
     assert float(g.diffuse.numpy()[left].max()) < 1.0
 
 
+def _shown(hole=True, pedestal=True, beyond=0.0):
+    """Points as the mirror stereo places them from a wall mirror: the front wall z = 2 (no camera sees it, no
+    plane of the buffers), with the hole a pedestal in front of it leaves in every reflection, the pedestal's
+    face (z = 1.5), and a share ``beyond`` of them farther (a doorway's room, z = 3); their material."""
+    gx, gy = np.meshgrid(np.linspace(-1.9, 1.9, 60), np.linspace(0.05, 2.45, 40))
+    wall = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.0)], 1)
+    if hole:
+        wall = wall[~((np.abs(wall[:, 0] - 0.3) < 0.3) & (wall[:, 1] < 0.85))]
+    parts, colours = [wall], [np.tile(FRONT, (len(wall), 1))]
+    if pedestal:
+        px, py = np.meshgrid(np.linspace(0.05, 0.55, 8), np.linspace(0.05, 0.8, 10))
+        ped = np.stack([px.ravel(), py.ravel(), np.full(px.size, 1.5)], 1)
+        parts.append(ped), colours.append(np.tile(TABLE, (len(ped), 1)))
+    if beyond:
+        k = int(beyond * len(wall) / (1 - beyond))
+        far = np.stack([np.linspace(-0.5, 0.5, k), np.full(k, 1.0), np.full(k, 3.0)], 1)
+        parts.append(far), colours.append(np.tile(BACK, (k, 1)))
+    pts, col = np.concatenate(parts), np.concatenate(colours)
+    return pts, (col, np.zeros_like(col), np.ones(len(pts)))
+
+
+def test_a_wall_the_mirrors_show_is_closed_where_they_could_not_show_it():
+    """With the points' material, the wall the mirrors show on an open side (the front z = 2: no camera sees it)
+    becomes a bounding plane, and the fill covers its hole behind the pedestal (every reflection of that patch
+    ends on the pedestal: zoo_mirror_only's test view looking at the urn saw black there) with the wall's
+    colour, nowhere doubling the shown points; the fill's other planes stop at it. A doorway's room beyond the
+    wall (the mirror shows points farther than it) leaves the side open; without the material, no wall."""
+    from scipy.spatial import cKDTree
+
+    rays = _rays()
+    pts, material = _shown()
+    for args, walls in [((), False), ((material,), True)]:
+        first, stats = plane_fill_gaussians(rays, count=100000)
+        room, h = stats["room"], stats["spacing"]
+        more, st = extend_plane_fill(room, rays, pts, 100000, 0.9, *args)
+        p, n = more.means.numpy().astype(float), more.normals.numpy().astype(float)
+        front = _on(p, n, 2, 2.0, -1, 0.06)
+        if not walls:
+            assert st["walls"] == "none" and not front.any()
+            continue
+        assert st["walls"].startswith("+z at ") and "beyond the box" in st["walls"]
+        assert any(abs(float(m[2]) + 1) < 1e-6 and abs(d + 2.0) < 0.05 for m, d, _ in room.bound)
+        hole = np.stack(np.meshgrid(np.linspace(0.05, 0.55, 6), np.linspace(0.05, 0.8, 6)), -1).reshape(-1, 2)
+        probe = np.concatenate([hole, np.full((len(hole), 1), 2.0)], 1)
+        assert cKDTree(p[front]).query(probe)[0].max() < 1.2 * h  # the hole is covered
+        np.testing.assert_allclose(more.diffuse.numpy()[front].mean(0), FRONT, atol=0.02)
+        assert np.abs(more.f0.numpy()[front]).max() < 1e-6
+        assert cKDTree(pts).query(p[front])[0].min() > h  # only where no shown point is
+        assert p[:, 2].max() < 2.0 + 2 * room.tol  # the floor, ceiling and side walls stop at it
+    for kwargs, note in [(dict(beyond=0.1), "a doorway"), (dict(hole=False, pedestal=False, beyond=0.3), "")]:
+        pts2, material2 = _shown(**kwargs)
+        room = plane_fill_gaussians(rays, count=100000)[1]["room"]
+        st = extend_plane_fill(room, rays, pts2, 100000, 0.9, material2)[1]
+        assert st["walls"] == "none", note
+
+
 def test_what_the_mirrors_show_behind_the_cameras_carries_the_fill_there():
     """The first fill's box ends at the cameras (z = 1): the floor, walls and ceiling behind them stay open, though
     a wall mirror shows them (zoo_mirror_only: a test view turning round looked through the floor). Given points

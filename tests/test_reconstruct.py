@@ -488,7 +488,7 @@ def test_the_plane_fill_reaches_where_the_mirror_shows_the_room_behind_the_camer
     """mirror_book's cameras face the mirror: the first plane fill's box ends at them, and the back of the room is
     seen only in the mirror. When the mirror stereo has placed what the mirror shows (end of warm-up), the fill is
     carried there (plane_fill.py step 6): appended as priors (never pruned, geometry frozen), outside the first
-    box and behind the cameras, logged among the decisions."""
+    box and behind the cameras, logged among the decisions; the book the mirror shows is not taken for a wall."""
     cfg = dict(SMALL, warmup=0, plane_fill_count=4000, highlight_fill=False)
     trainer = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
     first = int(trainer.prior.sum())
@@ -499,6 +499,8 @@ def test_the_plane_fill_reaches_where_the_mirror_shows_the_room_behind_the_camer
     assert len(grown) == 1, trainer.decisions
     added = int(trainer.prior.sum()) - first
     assert added > 100 and f"added {added} plane-fill" in grown[0]
+    # the book the mirror shows stands in front of the wall (points behind it): no wall there (_shown_walls)
+    assert "walls they show: none" in grown[0]
     assert trainer.prior[-added:].all()  # appended last (nothing after the extension in this run)
     new = trainer.params["means"][-added:].detach().double().numpy()
     assert not ((new >= lo - tol) & (new <= hi + tol)).all(1).any()

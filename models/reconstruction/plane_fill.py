@@ -29,7 +29,9 @@ the training views' buffers and covers their unseen parts.
 6. Beyond the cameras (``extend_plane_fill``): the box of step 3 ends at the cameras, but a wall mirror shows the
    half of the room behind them. When the mirror stereo has placed what the mirrors show (end of warm-up), the
    box grows to hold those points and the bounding planes are filled in the grown part too (zoo_mirror_only:
-   the floor behind the cameras, which a test view turning round looks at).
+   the floor behind the cameras, which a test view turning round looks at). The wall the mirrors show on an open
+   side (no plane of the buffers faces it) becomes a bounding plane itself, so that what no reflection could show
+   of it, the patch behind an object standing in front of it, is covered too (``_shown_walls``).
 
 The trainer adds them before warm-up (step 6's at its end) and never prunes them for want of blending weight (no
 training view may see them: what nothing observes is the prior's to say); where reflections see them, training
@@ -51,6 +53,9 @@ from .reflection_fill import emitting_rays, seen_empty
 
 SCALE = 0.8  # the fill's Gaussians' scale, x the grid spacing: with opacity 0.9 a wall lets < 1 % through
 COS_NORMAL = math.cos(math.radians(15.0))  # a point's normal within this of the plane's: the plane's point
+SHOWN_WALL_SHARE = 0.3   # a wall the mirrors show (_shown_walls): this share of the points beyond the first box
+SHOWN_WALL_MIN = 50      # ... and at least this many
+SHOWN_WALL_BEYOND = 0.05  # ... with at most this share of them farther than it
 
 
 def pixel_points(rays, max_points: int, seed: int = 0) -> dict[str, np.ndarray] | None:
@@ -279,7 +284,7 @@ def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.9, tol_fra
 
 @torch.no_grad()
 def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20000, opacity: float = 0.9,
-                      dtype=torch.float32) -> tuple[Gaussians | None, dict]:
+                      material: tuple | None = None, dtype=torch.float32) -> tuple[Gaussians | None, dict]:
     """The plane fill carried out to where the room is known to reach beyond the first fill's box: ``seen`` [M, 3]
     are points placed from what the cameras see only in mirrors (``mirror_stereo``: the half of a room behind
     cameras that face a wall mirror). The first box holds the seen pixels and the cameras, so it ends at the
@@ -287,8 +292,15 @@ def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20
     a test view turning round looked through the floor). Here the box grows to the 0.5-99.5 % box of ``seen``
     and the bounding planes are filled in the grown part alone (same spacing, or coarser to fit ``count``),
     away from the seen pixels and from ``seen``; ``room``'s box becomes the grown one (a second call fills only
-    beyond it). Returns (Gaussians or None, statistics; ``grown``: the box's sides that moved, or "nothing")."""
-    stats = {"unseen": 0, "added": 0, "grown": "nothing", "notes": []}
+    beyond it).
+
+    With ``material`` (the points' diffuse [M, 3], F0 [M, 3], roughness [M]), a wall the points show on an open side of the room
+    (no bounding plane faces it) becomes a bounding plane too (``_shown_walls``), so the fill covers what the
+    mirrors could not show of it: the wall behind an object that stands in front of it in every reflection
+    (zoo_mirror_only: a 0.6 x 0.85 m hole behind the urn's pedestal, which a test view looking at the urn saw
+    through, black). Returns (Gaussians or None, statistics; ``grown``: the box's sides that moved, or
+    "nothing"; ``walls``: the walls added, described)."""
+    stats = {"unseen": 0, "added": 0, "grown": "nothing", "walls": "none", "notes": []}
     if room is None or seen is None or len(seen) < 10:
         return None, stats
     seen = np.asarray(seen, dtype=np.float64)
@@ -299,8 +311,56 @@ def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20
     if not grown:
         return None, stats
     stats["grown"] = ", ".join(grown)
+    if material is not None:
+        stats["walls"] = _shown_walls(room, seen, *(np.asarray(m, dtype=np.float64) for m in material))
     fill, more = _fill(room, rays, count, opacity, lo, hi, np.concatenate([room.src["points"], seen]),
                        (room.lo, room.hi), dtype)
     stats.update(more)
     room.lo, room.hi = lo, hi
     return fill, stats
+
+
+def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarray, roughness: np.ndarray) -> str:
+    """Bounding planes for the walls ``seen`` shows on the room's open sides (``extend_plane_fill``); returns
+    their description ("none" without one). An open side: a bounding plane n . x = d whose normal no other
+    bounding plane's opposes (a room seen from one end: the wall behind the cameras). Along n, the points beyond
+    the first box are histogrammed (bins of 2 tol); the fullest bin, refined to the median within 2 tol of it,
+    is a wall when it holds >= ``SHOWN_WALL_SHARE`` of those points (and >= ``SHOWN_WALL_MIN``) and no more than
+    ``SHOWN_WALL_BEYOND`` lie farther than 3 tol behind it (a doorway or a window the mirror shows, with the
+    room beyond, stays open: the far field's). Its points join ``room.src`` with their material (the plane's:
+    what the fill's Gaussians there take), facing back into the room."""
+    tol = room.tol
+    normals = [n for n, _, _ in room.bound]
+    corners = np.array([[x, y, z] for x in (room.lo[0], room.hi[0]) for y in (room.lo[1], room.hi[1])
+                        for z in (room.lo[2], room.hi[2])])
+    described = []
+    for n in normals:
+        if any(float(m @ n) < -0.95 for m in normals):
+            continue  # closed: the opposite wall is a plane of the buffers (or one placed before)
+        proj = seen @ n
+        face = float((corners @ n).max())
+        beyond = proj > face + tol
+        if beyond.sum() < SHOWN_WALL_MIN:
+            continue
+        pb = proj[beyond]
+        edges = np.arange(pb.min(), pb.max() + 2 * tol, 2 * tol)
+        if len(edges) < 2:
+            continue
+        hist, edges = np.histogram(pb, bins=edges)
+        peak = 0.5 * (edges[hist.argmax()] + edges[hist.argmax() + 1])
+        s = float(np.median(pb[np.abs(pb - peak) <= 2 * tol]))
+        on = beyond & (np.abs(proj - s) <= 2 * tol)
+        share, behind = on.sum() / beyond.sum(), float(np.mean(pb > s + 3 * tol))
+        if on.sum() < SHOWN_WALL_MIN or share < SHOWN_WALL_SHARE or behind > SHOWN_WALL_BEYOND:
+            continue
+        src, k, first = room.src, int(on.sum()), len(room.src["points"])
+        pts = seen[on] - (proj[on] - s)[:, None] * n  # onto the plane
+        add = {"points": pts, "normals": np.tile(-n, (k, 1)), "diffuse": diffuse.reshape(-1, 3)[on],
+               "f0": f0.reshape(-1, 3)[on], "roughness": roughness.reshape(-1)[on], "emitting": np.zeros(k, dtype=bool)}
+        for key, value in add.items():
+            src[key] = np.concatenate([src[key], value.astype(src[key].dtype)])
+        room.bound.append((-n, -s, np.arange(first, first + k)))
+        axis = int(np.argmax(np.abs(n)))
+        described.append(f"{'+' if n[axis] > 0 else '-'}{'xyz'[axis]} at {s - face:.2f} beyond the box ({k} of "
+                         f"{int(beyond.sum())} points beyond it, {behind:.1%} behind the wall)")
+    return "; ".join(described) if described else "none"

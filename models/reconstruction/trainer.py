@@ -506,8 +506,11 @@ class Trainer:
             grown, walls, closed, shown = None, None, None, None
             if self._room is not None and stereo is not None and stereo[0] is not None:
                 # the room's planes behind the cameras, where the mirrors show it reaches (plane_fill.py step 6)
+                # (and the wall they show on an open side, with what the mirrors could not show of it)
                 shown = stereo[0].means.detach().double().cpu().numpy()
-                grown = extend_plane_fill(self._room, self.rays, shown, cfg.plane_fill_count)
+                material = tuple(x.detach().double().cpu().numpy() for x in (stereo[0].diffuse, stereo[0].f0,
+                                                                              stereo[0].roughness))
+                grown = extend_plane_fill(self._room, self.rays, shown, cfg.plane_fill_count, material=material)
             if self._room is not None and cfg.close_room:
                 # walls no view looks at, where sharp reflections (curved mirrors too) agree on them (room_closing.py),
                 # and the plane fill carried out to them
@@ -537,7 +540,7 @@ class Trainer:
                 self._add_fill(*fill)
             if grown is not None:
                 self._add_fill(*grown, "%(added)d plane-fill Gaussians where the mirrors show the room reaching past "
-                               "the first fill's box (grown: %(grown)s)", prior=True)
+                               "the first fill's box (grown: %(grown)s; walls they show: %(walls)s)", prior=True)
             if walls is not None:
                 self._add_fill(*walls, prior=True)
             if closed is not None:
