@@ -53,6 +53,7 @@ from .reflection_fill import emitting_rays, seen_empty
 
 SCALE = 0.8  # the fill's Gaussians' scale, x the grid spacing: with opacity 0.9 a wall lets < 1 % through
 COS_NORMAL = math.cos(math.radians(15.0))  # a point's normal within this of the plane's: the plane's point
+OPPOSITE = -0.95  # two bounding planes whose normals' dot is below this face each other
 SHOWN_WALL_SHARE = 0.3   # a wall the mirrors show (_shown_walls): this share of the points beyond the first box
 SHOWN_WALL_MIN = 50      # ... and at least this many
 SHOWN_WALL_BEYOND = 0.05  # ... with at most this share of them farther than it
@@ -145,12 +146,24 @@ def bounding(planes, points: np.ndarray, cameras: np.ndarray, tol: float, behind
     return out
 
 
+def box_corners(lo, hi) -> np.ndarray:
+    """The 8 corners [8, 3] of the box [lo, hi]."""
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def open_sides(room: Room) -> list[np.ndarray]:
+    """The inward normals of ``room``'s bounding planes that no other bounding plane faces: the room is open
+    beyond them, along the normal (a room seen from one end: the wall behind the cameras)."""
+    normals = [n for n, _, _ in room.bound]
+    return [n for n in normals if not any(float(m @ n) < OPPOSITE for m in normals)]
+
+
 def _grid(n: np.ndarray, d: float, lo: np.ndarray, hi: np.ndarray, h: float) -> np.ndarray:
     """Points of a square grid (spacing h) on the plane n . x = d inside the box [lo, hi]."""
     u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
     v = np.cross(n, u)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = box_corners(lo, hi)
     base = n * d
     cu, cv = (corners - base) @ u, (corners - base) @ v
     a = np.arange(cu.min(), cu.max() + h, h)
@@ -322,21 +335,16 @@ def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20
 
 def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarray, roughness: np.ndarray) -> str:
     """Bounding planes for the walls ``seen`` shows on the room's open sides (``extend_plane_fill``); returns
-    their description ("none" without one). An open side: a bounding plane n . x = d whose normal no other
-    bounding plane's opposes (a room seen from one end: the wall behind the cameras). Along n, the points beyond
+    their description ("none" without one). On each open side n (``open_sides``), the points beyond
     the first box are histogrammed (bins of 2 tol); the fullest bin, refined to the median within 2 tol of it,
     is a wall when it holds >= ``SHOWN_WALL_SHARE`` of those points (and >= ``SHOWN_WALL_MIN``) and no more than
     ``SHOWN_WALL_BEYOND`` lie farther than 3 tol behind it (a doorway or a window the mirror shows, with the
     room beyond, stays open: the far field's). Its points join ``room.src`` with their material (the plane's:
     what the fill's Gaussians there take), facing back into the room."""
     tol = room.tol
-    normals = [n for n, _, _ in room.bound]
-    corners = np.array([[x, y, z] for x in (room.lo[0], room.hi[0]) for y in (room.lo[1], room.hi[1])
-                        for z in (room.lo[2], room.hi[2])])
+    corners = box_corners(room.lo, room.hi)
     described = []
-    for n in normals:
-        if any(float(m @ n) < -0.95 for m in normals):
-            continue  # closed: the opposite wall is a plane of the buffers (or one placed before)
+    for n in open_sides(room):  # (a wall placed here joins room.bound: a later side is tested against it too)
         proj = seen @ n
         face = float((corners @ n).max())
         beyond = proj > face + tol

@@ -53,7 +53,7 @@ from models.gaussians import Gaussians
 
 from models.pathtrace.brdf import fresnel_schlick
 
-from .plane_fill import Room, _grid, _surfels
+from .plane_fill import Room, _grid, _surfels, box_corners, open_sides
 from .reflection_fill import (HIGHLIGHT_BRIGHTNESS, LUMINANCE, diffuse_level, matte_material, mirror_rays,
                               scene_box, seen_empty)
 
@@ -65,7 +65,6 @@ SWEEP = np.geomspace(0.02, 3.0, 40)  # offsets beyond the box's face, x the room
 CELLS = 40               # cells across the room's size on the hypothetical wall
 MIN_SUPPORT = 200        # (cell, view) pairs in cells that two or more views reach
 MAX_RATIO = 0.5          # the minimum's score at most this x the far end's
-OPPOSITE = -0.95         # two bounding planes with normals' dot below this face each other
 
 
 def _score(x: np.ndarray, r: np.ndarray, lum: np.ndarray, view: np.ndarray, n: np.ndarray, s: float,
@@ -140,10 +139,6 @@ def _reflections(rays, trace_fn, gaussians: Gaussians, glossy: bool, seed: int) 
             "radiance": radiance.numpy(), "ordinary": ordinary, "view": rays.view_of_ray[index].numpy()}
 
 
-def _box_corners(lo, hi) -> np.ndarray:
-    return np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
-
-
 def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls: list, described: list,
                  stats: dict, max_walls: int, label: str) -> np.ndarray:
     """Close ``sides`` (removed from the list as they close) one at a time, the clearest first, with the
@@ -194,7 +189,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
         walls.append((n, s, points, colours))
         room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))  # the wall faces back into the room
         grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])  # the box reaches the wall
-        corners = _box_corners(grown.min(0), grown.max(0))
+        corners = box_corners(grown.min(0), grown.max(0))
         described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
                          f"the far end's{label})")
     return corners
@@ -216,9 +211,8 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
     t = rays.targets
     if room is None or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth")):
         return None, None, stats
-    corners = _box_corners(room.lo, room.hi)
-    normals = [n for n, _, _ in room.bound]
-    sides = [n for n in normals if not any(float(m @ n) < OPPOSITE for m in normals)]
+    corners = box_corners(room.lo, room.hi)
+    sides = open_sides(room)
     if known is not None and len(known) >= 10:
         sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
     walls, described = [], []

@@ -728,9 +728,9 @@ class Trainer:
             self.anchors.load_state_dict(state["anchors"])
 
     def _cached_rows(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rows of ``prior`` and of ``reflected``, found again only after they change (_replace, load_state_dict:
-        no device read-back per step)."""
-        if self._prior_rows is None or self._fixed_rows is None:
+        """Rows of ``prior`` and of ``reflected`` (and ``self._fixed_rows``), found again only after they change
+        (_replace, load_state_dict reset all three: no device read-back per step)."""
+        if self._prior_rows is None:
             self._prior_rows = torch.nonzero(self.prior).reshape(-1)
             self._reflected_rows = torch.nonzero(self.reflected).reshape(-1)
             self._fixed_rows = torch.nonzero(self.fixed).reshape(-1)
