@@ -41,6 +41,7 @@ from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import extend_plane_fill, pixel_points, plane_fill_gaussians
 from .sphere_fill import sphere_fill_gaussians
+from .back_fill import back_fill
 from .room_closing import close_room, keep_inside
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
@@ -577,6 +578,32 @@ class Trainer:
         metrics["gaussians"] = len(self.params["means"])
         return metrics
 
+    @torch.no_grad()
+    def fill_backs(self) -> None:
+        """After the last step (``back_fill``): the lit layer behind thin surfaces seen from one side only
+        (back_fill.py), appended as a prior's fixed Gaussians."""
+        depths = []
+        for i, view in enumerate(self.rays.views):
+            rays = self.rays.view_rays(i)
+            cam = view.camera
+            depth = torch.zeros(cam.height * cam.width)
+            if "depth" in rays.targets:  # unknown (0) where masked out or not finite
+                d = rays.targets["depth"].reshape(-1).cpu()
+                depth = torch.where(rays.mask.cpu() & torch.isfinite(d), d, torch.zeros_like(d))
+            depths.append(depth.reshape(cam.height, cam.width).double().cpu().numpy())
+        with torch.enable_grad():
+            fill, stats = back_fill(self.gaussians().to(), self.rays.views, depths, self.backend.trace,
+                                    self.path_config(), self.scene_size)
+        if fill is not None:
+            self._replace(extra=fill.to(self.device), prior=True)
+            self.fixed[len(self.fixed) - len(fill):] = True
+            self._fixed_rows = None
+        message = ("%(count)d Gaussians behind thin surfaces seen from one side only (of %(candidates)d surface "
+                   "Gaussians: back seen empty %(carved)d, open %(open)d, %(seen)d dropped as a training view sees "
+                   "them)")
+        log.info("step %d: added %s", self.step, message % stats)
+        self.decisions.append(f"step {self.step}: added {message % stats}")
+
     def path_config(self, training: bool = False) -> PathConfig:
         """The path settings this run trains with (``training``: with the training-only cut-off) and stores with
         the model: the config's, with the path length decided when reflections turned on."""
@@ -897,4 +924,7 @@ def train(trainer: Trainer, out_dir: Path, progress: bool = True,
             if on_step:
                 on_step(metrics)
     bar.close()
+    if trainer.step >= cfg.iterations and cfg.back_fill:
+        trainer.fill_backs()
+        metrics["gaussians"] = len(trainer.gaussians())
     return metrics
