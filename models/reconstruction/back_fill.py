@@ -25,7 +25,8 @@ hemisphere of each side (models/pathtrace/irradiance.py, ``SAMPLES`` rays per si
    was trained.
 
 The copies train no further (they are made after the last step). Rooms without thin surfaces seen from one
-side get none (zoo: zoo_thin's table top and seat; the other rooms 0-80 copies, their scores unchanged).
+side get few or none (zoo_thin: 1,149, under the table top and the seat; the other zoo rooms 0-26, their
+scores within 0.03 dB; the demo 0).
 """
 
 from __future__ import annotations
