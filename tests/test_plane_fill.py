@@ -12,7 +12,9 @@ import torch
 from models.capture import View
 from models.capture.camera import Camera
 from models.reconstruction.data import RaySet
-from models.reconstruction.plane_fill import bounding, extend_plane_fill, find_planes, pixel_points, plane_fill_gaussians
+from models.gaussians import Gaussians
+from models.reconstruction.plane_fill import (bounding, extend_plane_fill, find_planes, pixel_points, plane_fill_gaussians,
+                                              stereo_on_planes)
 from models.reconstruction.reflection_fill import seen_empty
 
 FLOOR, CEILING, LEFT, METAL, BACK, FRONT, TABLE = (0.6, 0.5, 0.4), (0.8, 0.8, 0.8), (0.3, 0.6, 0.3), \
@@ -309,3 +311,41 @@ def test_what_the_mirrors_show_behind_the_cameras_carries_the_fill_there():
     fx, fz = np.meshgrid(np.linspace(-1.9, 1.9, 60), np.linspace(0.5, 1.95, 30))
     probe = np.stack([fx.ravel(), np.zeros(fx.size), fz.ravel()], 1)
     assert cKDTree(both).query(probe)[0].max() < 1.2 * h
+
+
+def test_mirror_stereo_points_on_a_room_plane_become_its_surfels_with_its_material():
+    """Mirror-stereo Gaussians (matte, semi-transparent, free) that lie on a bounding plane become plane-fill
+    surfels: on the plane, the fill's size and opacity, the plane's F0 / roughness (the metal wall's: 0.9 / 0.1),
+    the colour the mirrors showed; those off every plane (an object in the room, a point beyond a wall) stay."""
+    rays = _rays()
+    room = plane_fill_gaussians(rays, count=100000)[1]["room"]
+    rng = np.random.default_rng(0)
+    floor = np.stack([rng.uniform(-1.5, 1.5, 50), rng.uniform(-0.5, 0.5, 50) * room.tol, rng.uniform(0, 1.5, 50)], 1)
+    metal = np.stack([np.full(30, 2.0) + rng.uniform(-0.5, 0.5, 30) * room.tol, rng.uniform(0.2, 2.2, 30),
+                      rng.uniform(-1.5, 1.5, 30)], 1)
+    air = np.stack([rng.uniform(-1, 1, 20), rng.uniform(0.5, 2.0, 20), rng.uniform(-1, 1, 20)], 1)
+    outside = np.array([[0.0, 1.0, -2.5], [2.6, 1.0, 0.0]])  # beyond the back wall, beyond the metal wall
+    pts = np.concatenate([floor, metal, air, outside])
+    k = len(pts)
+    colour = rng.uniform(0, 1, (k, 3))
+    stereo = Gaussians(means=torch.tensor(pts, dtype=torch.float32), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(k, 1),
+                       log_scales=torch.full((k, 3), -3.0), opacity_logits=torch.full((k,), -0.85),
+                       diffuse=torch.tensor(colour, dtype=torch.float32), normals=torch.zeros(k, 3),
+                       roughness=torch.ones(k), f0=torch.zeros(k, 3))
+    on, surfels, stats = stereo_on_planes(room, stereo)
+    expected = np.zeros(k, bool)
+    expected[:80] = True
+    np.testing.assert_array_equal(on.numpy(), expected)
+    assert stats["on_planes"] == 80 and len(surfels) == 80
+    p, n = surfels.means.numpy().astype(float), surfels.normals.numpy().astype(float)
+    assert np.abs(p[:50, 1]).max() < 1e-5 and np.abs(p[50:, 0] - 2.0).max() < 0.02  # onto the planes
+    np.testing.assert_allclose(n[:50], np.tile([0, 1, 0], (50, 1)), atol=0.02)
+    np.testing.assert_allclose(n[50:], np.tile([-1, 0, 0], (30, 1)), atol=0.02)
+    np.testing.assert_allclose(surfels.diffuse.numpy(), colour[:80], atol=1e-6)  # what the mirrors showed
+    f0, rough = surfels.f0.numpy(), surfels.roughness.numpy()
+    assert np.abs(f0[:50]).max() < 1e-6 and np.abs(rough[:50] - 1.0).max() < 1e-6  # the matte floor's
+    assert np.abs(f0[50:] - 0.9).max() < 1e-6 and np.abs(rough[50:] - 0.1).max() < 1e-6  # the metal wall's
+    assert torch.sigmoid(surfels.opacity_logits).min() > 0.89  # the fill's opacity: a plane, not a haze
+    none = stereo_on_planes(None, stereo)
+    assert not none[0].any() and none[1] is None
+

@@ -493,7 +493,8 @@ def test_the_plane_fill_reaches_where_the_mirror_shows_the_room_behind_the_camer
     seen only in the mirror. When the mirror stereo has placed what the mirror shows (end of warm-up), the fill is
     carried there (plane_fill.py step 6): appended as priors (never pruned, geometry frozen), outside the first
     box and behind the cameras, logged among the decisions; the book the mirror shows is not taken for a wall."""
-    cfg = dict(SMALL, warmup=0, plane_fill_count=4000, highlight_fill=False)
+    # stereo_on_planes off: the extension's Gaussians alone are appended (tests/test_plane_fill.py covers it)
+    cfg = dict(SMALL, warmup=0, plane_fill_count=4000, highlight_fill=False, stereo_on_planes=False)
     trainer = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
     first = int(trainer.prior.sum())
     lo, hi, tol = trainer._room.lo.copy(), trainer._room.hi.copy(), trainer._room.tol

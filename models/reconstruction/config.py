@@ -126,6 +126,9 @@ class ReconstructConfig:
                                 "of it covered with Gaussians held fixed (nothing of theirs trains), never pruned "
                                 "for want of weight (sphere_fill.py). Off: zoo_spheres' far-side view gains 2.7 dB "
                                 "(normals 66 -> 8 degrees off), the zoo's rooms move within the draws (README)")
+    stereo_on_planes: bool = setting(True, "mirror-stereo Gaussians on one of the room's planes become plane-fill "
+                                     "surfels (on the plane, geometry frozen, the plane's F0 and roughness, the colour "
+                                     "the mirrors show) instead of free matte blobs (plane_fill.stereo_on_planes)")
     back_fill: bool = setting(True, "after the last step: a second layer behind thin surfaces whose backs no "
                               "training view saw but the views saw empty space behind (a table top's underside), "
                               "with the front's material lit by what the model sends that side (back_fill.py). "

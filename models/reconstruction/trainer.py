@@ -39,7 +39,7 @@ from .data import RaySet, build_rayset
 from .far_field import far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
-from .plane_fill import extend_plane_fill, pixel_points, plane_fill_gaussians
+from .plane_fill import extend_plane_fill, pixel_points, plane_fill_gaussians, stereo_on_planes
 from .sphere_fill import sphere_fill_gaussians
 from .back_fill import back_fill
 from .room_closing import close_room, keep_inside
@@ -512,6 +512,16 @@ class Trainer:
                 material = tuple(x.detach().double().cpu().numpy() for x in (stereo[0].diffuse, stereo[0].f0,
                                                                               stereo[0].roughness))
                 grown = extend_plane_fill(self._room, self.rays, shown, cfg.plane_fill_count, material=material)
+            planar = None
+            if cfg.stereo_on_planes and self._room is not None and stereo is not None and stereo[0] is not None:
+                # those on the room's planes become plane-fill surfels (plane_fill.stereo_on_planes)
+                on, surfels, stats = stereo_on_planes(self._room, stereo[0])
+                if surfels is not None:
+                    i = next(k for k, f in enumerate(fills) if f[0] is stereo[0])
+                    rest = stereo[0].subset(~on)
+                    fills[i] = (rest if len(rest) else None, *fills[i][1:])
+                    planar = (surfels, stats, "%(added)d of the mirror stereo's Gaussians on the room's planes made "
+                              "plane-fill surfels (the plane's F0 and roughness, the colour the mirrors show)")
             if self._room is not None and cfg.close_room:
                 # walls no view looks at, where sharp reflections (curved mirrors too) agree on them (room_closing.py),
                 # and the plane fill carried out to them
@@ -542,6 +552,8 @@ class Trainer:
             if grown is not None:
                 self._add_fill(*grown, "%(added)d plane-fill Gaussians where the mirrors show the room reaching past "
                                "the first fill's box (grown: %(grown)s; walls they show: %(walls)s)", prior=True)
+            if planar is not None:
+                self._add_fill(*planar, prior=True)
             if walls is not None:
                 self._add_fill(*walls, prior=True)
             if closed is not None:
