@@ -518,6 +518,26 @@ def test_the_plane_fill_reaches_where_the_mirror_shows_the_room_behind_the_camer
 
 
 
+def test_mirror_stereo_gaussians_on_the_rooms_planes_become_its_fixed_material_surfels(book):
+    """stereo_on_planes (tests/test_plane_fill.py covers the geometry): at the end of warm-up the mirror stereo's
+    Gaussians on a bounding plane are appended as plane-fill surfels, priors (geometry frozen) that keep their
+    F0 and roughness (``reflected``, fill_matte), logged; the others stay the stereo's (matte, free)."""
+    cfg = dict(SMALL, warmup=0, plane_fill_count=4000, highlight_fill=False)
+    trainer = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
+    trainer.train_step()
+    line = next(d for d in trainer.decisions if "of the mirror stereo's Gaussians on the room's planes" in d)
+    moved = int(line.split("added ")[1].split()[0])
+    assert moved > 0, trainer.decisions
+    both = trainer.prior & trainer.reflected
+    assert int(both.sum()) == moved
+    before = {k: trainer.params[k].detach()[both].clone() for k in ("means", "f0", "roughness")}
+    for _ in range(3):
+        trainer.train_step()
+    both = trainer.prior & trainer.reflected
+    for k, v in before.items():
+        assert torch.equal(trainer.params[k].detach()[both], v), k
+
+
 def test_the_far_field_is_left_out_where_no_camera_sees_past_the_room(book):
     """``far_field_hidden``: far-field Gaussians that no training camera sees past the captured room are not added
     (behind a closed wall they train on reflections slipping through it and show through any thin spot:

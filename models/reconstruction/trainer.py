@@ -554,6 +554,10 @@ class Trainer:
                                "the first fill's box (grown: %(grown)s; walls they show: %(walls)s)", prior=True)
             if planar is not None:
                 self._add_fill(*planar, prior=True)
+                # and they keep the plane's F0 and roughness (fill_matte's reason: no buffer sees them, and the
+                # mirrors' colour alone turned them shiny: mirror_book's floor behind the cameras, specular 27.3 -> 24.3)
+                self.reflected[len(self.reflected) - len(planar[0]):] = True
+                self._reflected_rows = None
             if walls is not None:
                 self._add_fill(*walls, prior=True)
             if closed is not None:
