@@ -13,8 +13,8 @@ from models.capture import View
 from models.capture.camera import Camera
 from models.reconstruction.data import RaySet
 from models.gaussians import Gaussians
-from models.reconstruction.plane_fill import (bounding, extend_plane_fill, find_planes, pixel_points, plane_fill_gaussians,
-                                              stereo_on_planes)
+from models.reconstruction.plane_fill import (bounding, extend_plane_fill, find_planes, pixel_points,
+                                              plane_fill_gaussians, stereo_on_planes)
 from models.reconstruction.reflection_fill import seen_empty
 
 FLOOR, CEILING, LEFT, METAL, BACK, FRONT, TABLE = (0.6, 0.5, 0.4), (0.8, 0.8, 0.8), (0.3, 0.6, 0.3), \

@@ -375,7 +375,8 @@ def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarr
 
 
 @torch.no_grad()
-def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9) -> tuple[torch.Tensor, Gaussians | None, dict]:
+def stereo_on_planes(room: Room | None, stereo: Gaussians,
+                     opacity: float = 0.9) -> tuple[torch.Tensor, Gaussians | None, dict]:
     """The mirror-stereo Gaussians (``stereo``) that lie on one of the room's bounding planes (within its
     tolerance, inside the other planes' half-spaces) made plane-fill surfels: moved onto the plane, the fill's
     size (``room.h``) and opacity, the colour the mirrors showed (the stereo Gaussian's), the plane's F0 and
@@ -408,8 +409,9 @@ def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9)
         k = min(16, len(mat))
         _, nearest = cKDTree(src["points"][mat]).query(pos, k=k)
         nearest = mat[np.asarray(nearest).reshape(len(pos), k)]
-        parts.append(_surfels(pos, n, room.h, opacity, colour[sel], np.median(src["roughness"][nearest], axis=1).reshape(-1),
-                              np.median(src["f0"][nearest], axis=1), stereo.dtype))
+        roughness = np.median(src["roughness"][nearest], axis=1).reshape(-1)
+        parts.append(_surfels(pos, n, room.h, opacity, colour[sel], roughness, np.median(src["f0"][nearest], axis=1),
+                              stereo.dtype))
         on |= sel
     fill = Gaussians.cat(parts) if parts else None
     return torch.from_numpy(on), fill, {"on_planes": int(on.sum()), "added": int(on.sum())}
