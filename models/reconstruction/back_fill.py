@@ -148,7 +148,8 @@ def back_fill(g: Gaussians, views: list[View], depths: list[np.ndarray], trace_f
     e_back = cosine_mean_radiance(trace_fn, g, points, -normals, offsets, samples, path, generator)
     # averaged over the nearest such Gaussians (SAMPLES rays each are noisy) before the division
     k = min(NEIGHBOURS, len(rows))
-    _, near = cKDTree(points.double().cpu().numpy()).query(points.double().cpu().numpy(), k=k)
+    at = points.double().cpu().numpy()
+    _, near = cKDTree(at).query(at, k=k)
     near = torch.from_numpy(np.asarray(near).reshape(len(rows), k))
     e_front, e_back = e_front[near].mean(dim=1), e_back[near].mean(dim=1)
     front = g.diffuse.detach()[mask].double().cpu()

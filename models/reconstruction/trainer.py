@@ -306,10 +306,11 @@ class Trainer:
         return self.extent * math.exp((1 - t) * math.log(lr.position_init) + t * math.log(lr.position_final))
 
     def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None,
-                 anchored: bool = False, prior: bool = False) -> None:
+                 anchored: bool = False, prior: bool = False, fixed: bool = False, matte: bool = False) -> None:
         """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
-        now, see anchors.py; ``prior``: a prior's, see ``self.prior``), keeping Adam's state and the anchors
-        aligned."""
+        now, see anchors.py, and matte; ``prior``: a prior's, see ``self.prior``; ``fixed``: nothing of theirs
+        trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``), keeping Adam's state and the
+        anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
@@ -319,9 +320,10 @@ class Trainer:
         if extra is not None:
             self.prior = torch.cat([self.prior, torch.full((len(extra),), prior, dtype=torch.bool,
                                                            device=self.prior.device)])
-            self.reflected = torch.cat([self.reflected, torch.full((len(extra),), anchored, dtype=torch.bool,
-                                                                   device=self.reflected.device)])
-            self.fixed = torch.cat([self.fixed, torch.zeros(len(extra), dtype=torch.bool, device=self.fixed.device)])
+            self.reflected = torch.cat([self.reflected, torch.full((len(extra),), anchored or matte,
+                                                                   dtype=torch.bool, device=self.reflected.device)])
+            self.fixed = torch.cat([self.fixed, torch.full((len(extra),), fixed, dtype=torch.bool,
+                                                           device=self.fixed.device)])
             self._prior_rows = self._reflected_rows = self._fixed_rows = None
         if extra is not None and anchored and self.config.fill_anchor > 0:
             extra = facing_surfels(extra)
@@ -435,12 +437,12 @@ class Trainer:
         return total, metrics, read[len(names):]
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False,
-                  prior: bool = False) -> None:
+                  prior: bool = False, fixed: bool = False, matte: bool = False) -> None:
         """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``prior``: a prior's, never pruned
         for want of weight, geometry frozen), log ``message % stats`` and keep it among the decisions (with each
         of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
-            self._replace(extra=fill, anchored=anchored, prior=prior)
+            self._replace(extra=fill, anchored=anchored, prior=prior, fixed=fixed, matte=matte)
         depth, spread = self.config.fill_anchor, max(self.config.fill_spread, self.config.fill_anchor)
         if fill is not None and anchored and depth > 0:
             message += (f", anchored (surfels facing the views: along that direction within {depth:g}x their "
@@ -515,12 +517,12 @@ class Trainer:
             planar = None
             if cfg.stereo_on_planes and self._room is not None and stereo is not None and stereo[0] is not None:
                 # those on the room's planes become plane-fill surfels (plane_fill.stereo_on_planes)
-                on, surfels, stats = stereo_on_planes(self._room, stereo[0])
+                on, surfels, on_planes = stereo_on_planes(self._room, stereo[0])
                 if surfels is not None:
                     i = next(k for k, f in enumerate(fills) if f[0] is stereo[0])
                     rest = stereo[0].subset(~on)
                     fills[i] = (rest if len(rest) else None, *fills[i][1:])
-                    planar = (surfels, stats, "%(added)d of the mirror stereo's Gaussians on the room's planes made "
+                    planar = (surfels, on_planes, "%(added)d of the mirror stereo's Gaussians on the room's planes made "
                               "plane-fill surfels (the plane's F0 and roughness, the colour the mirrors show)")
             if self._room is not None and cfg.close_room:
                 # walls no view looks at, where sharp reflections (curved mirrors too) agree on them (room_closing.py),
@@ -552,12 +554,8 @@ class Trainer:
             if grown is not None:
                 self._add_fill(*grown, "%(added)d plane-fill Gaussians where the mirrors show the room reaching past "
                                "the first fill's box (grown: %(grown)s; walls they show: %(walls)s)", prior=True)
-            if planar is not None:
-                self._add_fill(*planar, prior=True)
-                # and they keep the plane's F0 and roughness (fill_matte's reason: no buffer sees them, and the
-                # mirrors' colour alone turned them shiny: mirror_book's floor behind the cameras, specular 27.3 -> 24.3)
-                self.reflected[len(self.reflected) - len(planar[0]):] = True
-                self._reflected_rows = None
+            if planar is not None:  # keeping the plane's F0 and roughness (fill_matte: no buffer sees them)
+                self._add_fill(*planar, prior=True, matte=True)
             if walls is not None:
                 self._add_fill(*walls, prior=True)
             if closed is not None:
@@ -610,15 +608,10 @@ class Trainer:
         with torch.enable_grad():
             fill, stats = back_fill(self.gaussians().to(), self.rays.views, depths, self.backend.trace,
                                     self.path_config(), self.scene_size)
-        if fill is not None:
-            self._replace(extra=fill.to(self.device), prior=True)
-            self.fixed[len(self.fixed) - len(fill):] = True
-            self._fixed_rows = None
-        message = ("%(count)d Gaussians behind thin surfaces seen from one side only (of %(candidates)d surface "
-                   "Gaussians: back seen empty %(carved)d, open %(open)d, %(seen)d dropped as a training view sees "
-                   "them)")
-        log.info("step %d: added %s", self.step, message % stats)
-        self.decisions.append(f"step {self.step}: added {message % stats}")
+        self._add_fill(None if fill is None else fill.to(self.device), stats,
+                       "%(count)d Gaussians behind thin surfaces seen from one side only (of %(candidates)d surface "
+                       "Gaussians: back seen empty %(carved)d, open %(open)d, %(seen)d dropped as a training view "
+                       "sees them)", prior=True, fixed=True)
 
     def path_config(self, training: bool = False) -> PathConfig:
         """The path settings this run trains with (``training``: with the training-only cut-off) and stores with
