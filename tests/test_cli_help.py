@@ -9,9 +9,9 @@ import pytest
 from tests.conftest import ROOT
 
 STAGES = sorted(p.parent.name for p in (ROOT / "stages").glob("*/__main__.py"))
-SUBCOMMANDS = [("benchmark", "sweep"), ("benchmark", "train-step"), ("buffernet_train", "train"),
-               ("edit", "apply"), ("edit", "evaluate"), ("report", "scene"), ("report", "batch"),
-               ("synth", "procedural")]
+SUBCOMMANDS = [("benchmark", "sweep"), ("benchmark", "train-step"), ("benchmark", "seeds"),
+               ("buffernet_train", "train"), ("edit", "apply"), ("edit", "evaluate"), ("report", "scene"),
+               ("report", "batch"), ("synth", "procedural")]
 HEAVY = {"torch", "warp"}
 TIMEOUT_S = 20  # a hang guard, not a benchmark: --help takes ~0.3 s on 2 idle cores (~1 s busy)
 

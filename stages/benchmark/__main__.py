@@ -5,7 +5,9 @@
      python -m stages.benchmark train-step [--rays 64,1024,4096] [--views 128x96] [--large] [--device cpu,cuda]
 [--gaussians 50000] [--steps 5] [--out FILE.json] [--quick] (ms per training step by section; see train-step --help)
      python -m stages.benchmark buffernet-step [--init sd2] [--size 512] [--dtype bf16] [--device cuda]
-(one buffer-network training step; see buffernet-step --help)"""
+(one buffer-network training step; see buffernet-step --help)
+     python -m stages.benchmark seeds --scenes zoo_mirror_metal,zoo_mirror_only --set reconstruct.fill_anchor=3
+[--seeds 0,1] [--jobs 2] [--device cuda] (a settings change against the seed-to-seed spread; see seeds --help)"""
 
 from __future__ import annotations
 
@@ -135,6 +137,62 @@ def sweep_main(argv) -> int:
     return 0
 
 
+def seeds_main(argv) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m stages.benchmark seeds",
+        description="A settings change against the run-to-run spread: every scene is trained, rendered and scored "
+        "(tonemapped PSNR, as evaluate) at each seed twice, with its own config (base) and with the --set changes "
+        "(variant), from <results>/<scene>/capture (make it with `snakemake --cores 2 <results>/<scene>/capture/"
+        "transforms.json`). Prints each pair's difference, their mean and range per scene, and writes the JSON.",
+    )
+    p.add_argument("--scenes", required=True, help="comma-separated scene names (configs/scenes/)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="the variant: a config value changed (repeatable; VALUE read as YAML), e.g. "
+                   "reconstruct.fill_anchor=3")
+    p.add_argument("--both", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="a change made to base and variant alike, e.g. render.denoise=false where pyoidn is missing")
+    p.add_argument("--seeds", type=_ints, default=[0, 1], help="reconstruct seeds (default 0,1)")
+    p.add_argument("--preset", action="append", default=[], help="extra preset(s) on top of each scene's")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="shorten every training run to this many steps (warm-up and pruning scaled alike)")
+    p.add_argument("--results", type=Path, default=Path("results"), help="where <scene>/capture lies")
+    p.add_argument("--jobs", type=int, default=1, help="runs at once, each its own process (a GPU holds several)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", type=Path, default=Path("results/benchmark/seeds.json"))
+    a = p.parse_args(argv)
+    from stages.benchmark.seeds import format_table, parse_setting, run_seeds
+    from stages.benchmark.sweep import config_for_sweep
+    from stages.config import ConfigError, deep_merge, load_config
+
+    try:
+        variant, both = {}, {}
+        for text in a.sets:
+            variant = deep_merge(variant, parse_setting(text))
+        for text in a.both:
+            both = deep_merge(both, parse_setting(text))
+        if not variant:
+            raise ValueError("nothing to compare: give the variant's change with --set SECTION.KEY=VALUE")
+        scenes = {}
+        for name in [s for s in a.scenes.split(",") if s]:
+            config = config_for_sweep(deep_merge(load_config(name, presets=a.preset), both), a.iterations)
+            load_config(name, presets=a.preset, overrides=deep_merge(both, variant))  # the variant validated
+            capture = a.results / name / "capture"
+            if not (capture / "transforms.json").is_file():
+                raise ValueError(f"no capture for scene {name!r}: {capture}/transforms.json missing (make it with "
+                                 f"`snakemake --cores 2 {capture}/transforms.json --config results={a.results}`)")
+            scenes[name] = (capture, config)
+    except (ConfigError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    result = run_seeds(scenes, variant, a.seeds, a.device, a.jobs,
+                       progress=lambda m: print(m, file=sys.stderr, flush=True))
+    result.update(both=both, iterations=a.iterations, presets=a.preset)
+    print(format_table(result))
+    write_json_atomic(a.out, result)
+    print(f"wrote {a.out}")
+    return 0
+
+
 def _sizes(text: str) -> list[tuple[int, int]]:
     if text == "none":
         return []
@@ -194,6 +252,8 @@ def main(argv=None) -> int:
         return sweep_main(argv[1:])
     if argv[:1] == ["train-step"]:
         return train_step_main(argv[1:])
+    if argv[:1] == ["seeds"]:
+        return seeds_main(argv[1:])
     if argv[:1] == ["buffernet-step"]:
         from stages.benchmark.buffernet_step import buffernet_step_main
 

@@ -1,0 +1,65 @@
+"""Paired-seed benchmark (stages/benchmark/seeds.py): settings parsed as the CLI takes them, a base / variant pair
+per seed trained, rendered and scored as the workflow would, the pair table's differences, clear CLI errors."""
+
+import math
+
+import pytest
+
+from models.capture import read_capture
+from stages.benchmark.__main__ import main as benchmark_main
+from stages.benchmark.seeds import format_table, pairs, parse_setting, run_seeds
+from stages.benchmark.sweep import config_for_sweep
+from stages.config import load_config
+
+
+def test_parse_setting_nests_keys_and_reads_yaml_values():
+    assert parse_setting("reconstruct.fill_anchor=3") == {"reconstruct": {"fill_anchor": 3}}
+    assert parse_setting("reconstruct.tracer.kernel_p=2") == {"reconstruct": {"tracer": {"kernel_p": 2}}}
+    assert parse_setting("render.denoise=false") == {"render": {"denoise": False}}
+    assert parse_setting("reconstruct.loss=[a, b]") == {"reconstruct": {"loss": ["a", "b"]}}
+    for bad in ("fill_anchor=3", "reconstruct.fill_anchor", "=3"):
+        with pytest.raises(ValueError, match="section.key=value"):
+            parse_setting(bad)
+
+
+def test_pairs_are_variant_minus_base_per_seed():
+    pts = [{"scene": "s", "seed": seed, "variant": v, "psnr_final_tonemapped": f, "psnr_specular_tonemapped": 20.0}
+           for seed, v, f in ((0, "base", 28.0), (0, "variant", 29.0), (1, "base", 27.0), (1, "variant", 26.5))]
+    p = pairs(pts)["s"]
+    assert [r["final_diff"] for r in p["seeds"]] == [1.0, -0.5]
+    assert (p["final_diff_mean"], p["final_diff_min"], p["final_diff_max"]) == (0.25, -0.5, 1.0)
+    assert "+0.25" in format_table({"pairs": {"s": p}})
+
+
+def test_seeds_trains_base_and_variant_per_seed_and_scores_them(tiny_demo, tmp_path):
+    _, results, _, _ = tiny_demo
+    config = config_for_sweep(load_config("demo", presets=["ci"]), 40)
+    config["render"]["spp"] = 2
+    result = run_seeds({"demo": (results / "demo" / "capture", config)}, {"reconstruct": {"back_fill": False}},
+                       [3], jobs=2, work_dir=tmp_path / "work", progress=lambda m: None)
+    assert [(p["seed"], p["variant"]) for p in result["points"]] == [(3, "base"), (3, "variant")]
+    for p in result["points"]:
+        assert p["gaussians"] > 100 and p["train_s"] > 0
+        for layer in ("final", "specular", "diffuse"):
+            assert math.isfinite(p[f"psnr_{layer}_tonemapped"]) and p[f"psnr_{layer}_tonemapped"] > 5
+        assert set(p["views"]) == {v.name for v in read_capture(results / "demo" / "capture").split("test")}
+    base, variant = result["points"]
+    row = result["pairs"]["demo"]["seeds"][0]
+    assert row["final_diff"] == pytest.approx(variant["psnr_final_tonemapped"] - base["psnr_final_tonemapped"])
+    # each run trained, saved and rendered its own model
+    assert (tmp_path / "work" / "demo_3_base" / "model" / "gaussians.ply").is_file()
+    assert (tmp_path / "work" / "demo_3_variant" / "renders").is_dir()
+
+
+def test_seeds_cli_says_what_is_missing(tmp_path, capsys):
+    assert benchmark_main(["seeds", "--scenes", "demo", "--results", str(tmp_path)]) == 1
+    assert "nothing to compare" in capsys.readouterr().err
+    assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=3",
+                           "--results", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "no capture for scene 'demo'" in err and str(tmp_path / "demo" / "capture") in err
+    assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=-1",
+                           "--results", str(tmp_path)]) == 1
+    assert "reconstruct.fill_anchor must be >= 0" in capsys.readouterr().err
+    assert benchmark_main(["seeds", "--scenes", "nope", "--set", "reconstruct.fill_anchor=1"]) == 1
+    assert "unknown scene 'nope'" in capsys.readouterr().err
