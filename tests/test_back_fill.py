@@ -149,3 +149,24 @@ def test_without_depths_nothing_is_carved_and_nothing_is_added(tracer):
     zeros = [np.zeros((v.camera.height, v.camera.width)) for v in views]
     copies, stats = back_fill(scene, views, zeros, tracer.trace, PathConfig(), _size(scene))
     assert copies is None and stats["carved"] == 0 and stats["count"] == 0
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the fill's CUDA path runs when one is present")
+def test_the_fill_on_cuda_puts_the_same_layer_under_the_table_top(tracer):
+    """The trainer calls the fill with its device's Gaussians and tracer (models/reconstruction/trainer.py
+    ``fill_backs``): on CUDA the copies are those of the CPU, to the estimator's noise."""
+    scene, rows_top, _ = _room()
+    views = _cameras()
+    cpu, _ = back_fill(scene, views, _depths(scene, views, tracer), tracer.trace, PathConfig(), _size(scene))
+    gpu_tracer = Tracer(TracerConfig(), "cuda")
+    try:
+        on_gpu = scene.to("cuda")
+        gpu, stats = back_fill(on_gpu, views, _depths(scene, views, tracer), gpu_tracer.trace, PathConfig(),
+                               _size(scene))
+    finally:
+        gpu_tracer.close()
+    assert gpu is not None and abs(len(gpu) - len(cpu)) <= 0.05 * len(cpu), stats
+    expected = L_TOP * L_FLOOR / L_CEILING
+    assert abs(float(gpu.diffuse.mean()) - expected) < 0.1 * expected
+    assert bool((gpu.means[:, 1].cpu() < TOP).all())
