@@ -61,5 +61,7 @@ def test_seeds_cli_says_what_is_missing(tmp_path, capsys):
     assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=-1",
                            "--results", str(tmp_path)]) == 1
     assert "reconstruct.fill_anchor must be >= 0" in capsys.readouterr().err
+    assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=1", "--seeds", ""]) == 1
+    assert "no seeds" in capsys.readouterr().err
     assert benchmark_main(["seeds", "--scenes", "nope", "--set", "reconstruct.fill_anchor=1"]) == 1
     assert "unknown scene 'nope'" in capsys.readouterr().err

@@ -172,6 +172,8 @@ def seeds_main(argv) -> int:
             both = deep_merge(both, parse_setting(text))
         if not variant:
             raise ValueError("nothing to compare: give the variant's change with --set SECTION.KEY=VALUE")
+        if not a.seeds:
+            raise ValueError("no seeds: give --seeds, e.g. 0,1")
         scenes = {}
         for name in [s for s in a.scenes.split(",") if s]:
             config = config_for_sweep(deep_merge(load_config(name, presets=a.preset), both), a.iterations)

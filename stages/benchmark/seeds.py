@@ -16,7 +16,6 @@ from __future__ import annotations
 import concurrent.futures
 import multiprocessing
 import tempfile
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -42,48 +41,24 @@ def parse_setting(text: str) -> dict:
 
 
 def _point(task: dict) -> dict:
-    """One training + render + score (in a worker process, or in this one)."""
+    """One training + render + score (in a worker process, or in this one): the sweep's base point, all test views
+    scored, tonemapped."""
     from stages.cli import single_threaded_torch
 
     single_threaded_torch()
-    from models.capture import Capture, read_capture
-    from models.initialisation import InitConfig, dense_init
-    from models.metrics import evaluate_renders
-    from models.reconstruction import ReconstructConfig, Trainer, train
-    from models.rendering import RenderConfig, render_view, write_layers
-    from models.tracer import Tracer
-    from models.trained import load_model, save_model
-    import torch
+    from models.capture import read_capture
+    from models.initialisation import InitConfig
+    from models.reconstruction import ReconstructConfig
+    from models.rendering import RenderConfig
+    from stages.benchmark.sweep import render_and_evaluate, train_model
 
     config, device, work = task["config"], task["device"], Path(task["work"])
     capture = read_capture(Path(task["capture"]))
-    recon = ReconstructConfig.from_dict(config.get("reconstruct", {}))
-    t0 = time.perf_counter()
-    init, _ = dense_init(capture, InitConfig.from_dict(config.get("init", {})))
-    tracer = Tracer(recon.tracer, device=device)
-    try:
-        trainer = Trainer(capture, init, recon, tracer)
-        train(trainer, work / "model", progress=False)
-        save_model(work / "model", trainer.gaussians(), trainer.settings())
-        count = len(trainer.params["means"])
-    finally:
-        tracer.close()
-    train_s = time.perf_counter() - t0
-    gaussians, settings = load_model(work / "model")
+    model, count, train_s = train_model(capture, InitConfig.from_dict(config.get("init", {})),
+                                   ReconstructConfig.from_dict(config.get("reconstruct", {})), device, work / "model")
     render = {**config.get("render", {}), "path_views": 0, "video": False, "max_path_length": None, "sampler": None}
-    render_cfg = RenderConfig.from_dict(render)
-    tracer = Tracer(settings.tracer_config(), device=device)
-    views = capture.split("test")
-    try:
-        tracer.update(gaussians)
-        generator = torch.Generator().manual_seed(render_cfg.seed)
-        for view in views:
-            img = render_view(tracer.trace, view.camera, gaussians, render_cfg, generator, settings.path)
-            write_layers(work / "renders", view.name, img)
-    finally:
-        tracer.close()
-    scores = evaluate_renders(Capture(views, capture.meta), work / "renders",
-                              regions=config.get("evaluate", {}).get("regions"))
+    scores, _ = render_and_evaluate(capture, model, RenderConfig.from_dict(render), device, None, work / "renders",
+                                    regions=config.get("evaluate", {}).get("regions"), warm_up=False)
     mean = scores["mean"]
     return {**{k: task[k] for k in ("scene", "seed", "variant")}, "train_s": round(train_s, 1), "gaussians": count,
             **{f"psnr_{layer}_tonemapped": float(mean[f"psnr_{layer}_tonemapped"]) for layer in LAYERS},

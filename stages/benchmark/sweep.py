@@ -60,18 +60,21 @@ class SweepGrid:
                    spp=[1, 4], render_k=[8], render_transmittance=[0.05], test_views=1)
 
 
-def score(capture: Capture, model: Path, render_cfg: RenderConfig, device: str, test_views: int, work: Path,
-          tracer_over: dict | None = None) -> dict:
-    """Render ``test_views`` test views of the model folder ``model`` (its tracer / path settings, with
-    ``tracer_over`` on top) and compare with the ground truth: PSNR per layer and seconds per view."""
+def render_and_evaluate(capture: Capture, model: Path, render_cfg: RenderConfig, device: str, test_views: int | None,
+                        work: Path, tracer_over: dict | None = None, regions: dict | None = None,
+                        warm_up: bool = True) -> tuple[dict, list[float]]:
+    """Render the first ``test_views`` (None: all) test views of the model folder ``model`` (its tracer / path
+    settings, with ``tracer_over`` on top) into ``work`` and score them as ``evaluate`` does (``evaluate_renders``
+    with ``regions``); returns (its scores, seconds per view; ``warm_up``: an untimed 1-spp render first)."""
     gaussians, settings = load_model(model)
     tracer = Tracer(settings.tracer_config(**(tracer_over or {})), device=device)
+    views = capture.split("test")[:test_views]
     try:
         tracer.update(gaussians)
-        views = capture.split("test")[:test_views]
         generator = torch.Generator().manual_seed(render_cfg.seed)
-        render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, denoise=False), generator,
-                    settings.path)  # warm-up
+        if warm_up:
+            render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, denoise=False), generator,
+                        settings.path)
         seconds = []
         for view in views:
             t0 = time.perf_counter()
@@ -80,13 +83,20 @@ def score(capture: Capture, model: Path, render_cfg: RenderConfig, device: str, 
             write_layers(work, view.name, img)
     finally:
         tracer.close()
-    sub = Capture(views, capture.meta)
-    mean = evaluate_renders(sub, work)["mean"]
+    return evaluate_renders(Capture(views, capture.meta), work, regions=regions), seconds
+
+
+def score(capture: Capture, model: Path, render_cfg: RenderConfig, device: str, test_views: int, work: Path,
+          tracer_over: dict | None = None) -> dict:
+    """Render ``test_views`` test views of the model folder ``model`` (its tracer / path settings, with
+    ``tracer_over`` on top) and compare with the ground truth: PSNR per layer and seconds per view."""
+    scores, seconds = render_and_evaluate(capture, model, render_cfg, device, test_views, work, tracer_over)
+    mean = scores["mean"]
     return {"render_s_per_view": float(np.mean(seconds)),
             **{f"psnr_{layer}": mean[f"psnr_{layer}"] for layer in ("diffuse", "specular", "final")}}
 
 
-def _train(capture: Capture, init_cfg: InitConfig, recon: ReconstructConfig, device: str, work: Path):
+def train_model(capture: Capture, init_cfg: InitConfig, recon: ReconstructConfig, device: str, work: Path):
     """Dense init + reconstruction into the model folder ``work``; returns (model folder, Gaussians, seconds)."""
     t0 = time.perf_counter()
     init, _ = dense_init(capture, init_cfg)
@@ -142,16 +152,16 @@ def run_sweep(capture: Capture, config: dict, grid: SweepGrid, device: str = "cp
     work = Path(tmp.name) if tmp else Path(work_dir)
     try:
         # untimed warm-up: Warp kernel compilation / cache load would otherwise be charged to the first point
-        _train(capture, InitConfig.from_dict(base_init),
-               ReconstructConfig.from_dict({**base_recon, "iterations": 2, "warmup": 1, "prune_from": 10**9}),
-               device, work / "warmup")
+        train_model(capture, InitConfig.from_dict(base_init),
+                    ReconstructConfig.from_dict({**base_recon, "iterations": 2, "warmup": 1, "prune_from": 10**9}),
+                    device, work / "warmup")
         base_model = base_count = None
         for i, (name, recon_over, init_over, factor) in enumerate(training):
             progress(f"[{i + 1}/{len(training)}] training: {name}")
             recon = ReconstructConfig.from_dict(deep_merge(base_recon, recon_over))
             train_capture = downsample_train(capture, factor) if factor > 1 else capture
-            model, count, seconds = _train(train_capture, InitConfig.from_dict({**base_init, **init_over}), recon,
-                                           device, work / f"train_{i}")
+            init_cfg = InitConfig.from_dict({**base_init, **init_over})
+            model, count, seconds = train_model(train_capture, init_cfg, recon, device, work / f"train_{i}")
             if name == "base":
                 base_model, base_count = model, count
             # the model's own path length and tracer settings (model.yaml), as the render stage renders it
