@@ -13,7 +13,7 @@ from models.capture import View
 from models.capture.camera import Camera
 from models.reconstruction.data import RaySet
 from models.gaussians import Gaussians
-from models.reconstruction.plane_fill import (bounding, extend_plane_fill, find_planes, pixel_points,
+from models.reconstruction.plane_fill import (bounding, distinct, extend_plane_fill, find_planes, pixel_points,
                                               plane_fill_gaussians, stereo_on_planes)
 from models.reconstruction.reflection_fill import seen_empty
 
@@ -349,3 +349,33 @@ def test_mirror_stereo_points_on_a_room_plane_become_its_surfels_with_its_materi
     none = stereo_on_planes(None, stereo)
     assert not none[0].any() and none[1] is None
 
+
+
+def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():
+    """``distinct`` (in ``bounding``): the floor round objects standing on it, or a wall's seam with the floor,
+    fit thin slanted planes with nothing behind them; every one of their points lies within 3 tol of the floor,
+    so they are dropped. A ceiling seen in a thin strip above a wall (most of its points near the wall, not all)
+    and the walls stay; the order of the planes is kept."""
+    rng = np.random.default_rng(0)
+    tol = 0.04
+    floor = np.stack([rng.uniform(-2, 2, 5000), rng.normal(0, 0.3 * tol, 5000), rng.uniform(-2, 2, 5000)], 1)
+    wall = np.stack([np.full(3000, 2.0) + rng.normal(0, 0.3 * tol, 3000), rng.uniform(0, 2.5, 3000),
+                     rng.uniform(-2, 2, 3000)], 1)
+    # a slab 2-8 cm over the floor, rising along z: a slanted plane of 300 points, each within 3 tol of the floor
+    z = rng.uniform(-2, 2, 300)
+    slab = np.stack([rng.uniform(-1, 1, 300), 0.05 + 0.015 * z, z], 1)
+    # a ceiling strip seen above the wall: 60 % of its points within 3 tol of the wall, the rest farther in
+    x = np.concatenate([rng.uniform(1.9, 2.0, 120), rng.uniform(1.3, 1.8, 80)])
+    ceiling = np.stack([x, np.full(200, 2.5), rng.uniform(-2, 2, 200)], 1)
+    points = np.concatenate([floor, wall, slab, ceiling])
+    idx = np.cumsum([0, 5000, 3000, 300, 200])
+    tilt = np.array([0.0, 1.0, -0.015]) / np.linalg.norm([0.0, 1.0, -0.015])
+    planes = [(np.array([0.0, 1.0, 0.0]), 0.0, np.arange(idx[0], idx[1])),
+              (tilt, 0.05 * tilt[1], np.arange(idx[2], idx[3])),
+              (np.array([-1.0, 0.0, 0.0]), -2.0, np.arange(idx[1], idx[2])),
+              (np.array([0.0, -1.0, 0.0]), -2.5, np.arange(idx[3], idx[4]))]
+    kept = distinct(planes, points, tol)
+    assert [len(p[2]) for p in kept] == [5000, 3000, 200]  # the slab's plane is gone, the order kept
+    assert len(distinct(planes[1:], points, tol)) == 3  # without the floor, nothing makes the slab a duplicate
+    cams = np.array([[0.0, 1.2, 0.0], [0.5, 1.4, -0.5]])
+    assert [len(p[2]) for p in bounding(planes, points, cams, tol)] == [5000, 3000, 200]

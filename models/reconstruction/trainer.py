@@ -202,7 +202,8 @@ class Trainer:
         fill, stats = plane_fill_gaussians(self.rays, self.config.plane_fill_count, seed=self.config.seed)
         self._room = stats["room"]  # the planes and box found, for the fill behind the cameras (extend_plane_fill)
         message = (f"plane fill: {stats['added']} Gaussians on the unseen parts of {stats['bounding']} planes that "
-                   f"bound the room (of {stats['planes']} planes in the buffers; grid spacing "
+                   f"bound the room (of {stats['planes']} planes in the buffers; {stats.get('duplicates', 0)} more "
+                   f"made of a larger one's points left out; grid spacing "
                    f"{stats['spacing_fraction']:.4f} of the room's size)")
         self.decisions.append(message)
         for note in stats.get("notes", ()):
