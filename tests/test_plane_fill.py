@@ -125,7 +125,7 @@ def test_the_bounding_planes_are_the_seen_walls_floor_and_ceiling_not_the_table(
     pts = src["points"]
     tol = 0.01 * float(np.ptp(np.quantile(pts, [0.005, 0.995], axis=0), axis=0).max())
     cams = np.stack([v.camera.origin for v in rays.views])
-    found = bounding(find_planes(pts, src["normals"], tol), pts, cams, tol)
+    found = bounding(find_planes(pts, src["normals"], tol), pts, src["normals"], cams, tol)
     planes = {(int(np.argmax(np.abs(n))), round(float(d * np.sign(n[np.argmax(np.abs(n))])), 2))
               for n, d, _ in found if np.abs(n).max() > 0.99}
     # floor, ceiling (seen at the top of the frames), both side walls, the back wall (its opening is small)
@@ -352,30 +352,42 @@ def test_mirror_stereo_points_on_a_room_plane_become_its_surfels_with_its_materi
 
 
 def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():
-    """``distinct`` (in ``bounding``): the floor round objects standing on it, or a wall's seam with the floor,
-    fit thin slanted planes with nothing behind them; every one of their points lies within 3 tol of the floor,
-    so they are dropped. A ceiling seen in a thin strip above a wall (most of its points near the wall, not all)
-    and the walls stay; the order of the planes is kept."""
+    """``distinct`` (in ``bounding``): the floor round objects standing on it fits a thin plane a little above
+    and tilted from the floor (its points within 3 tol of the floor and facing up like it), the pixels where a wall
+    meets the floor a slanted plane (its points near both); both have nothing behind them and are dropped. A wall
+    seen only in a strip just above the floor (96 % of its points within 3 tol of the floor, but facing away from
+    it) and a ceiling seen in a strip above a wall stay; the order of the planes is kept."""
     rng = np.random.default_rng(0)
     tol = 0.04
-    floor = np.stack([rng.uniform(-2, 2, 5000), rng.normal(0, 0.3 * tol, 5000), rng.uniform(-2, 2, 5000)], 1)
-    wall = np.stack([np.full(3000, 2.0) + rng.normal(0, 0.3 * tol, 3000), rng.uniform(0, 2.5, 3000),
-                     rng.uniform(-2, 2, 3000)], 1)
-    # a slab 2-8 cm over the floor, rising along z: a slanted plane of 300 points, each within 3 tol of the floor
-    z = rng.uniform(-2, 2, 300)
-    slab = np.stack([rng.uniform(-1, 1, 300), 0.05 + 0.015 * z, z], 1)
-    # a ceiling strip seen above the wall: 60 % of its points within 3 tol of the wall, the rest farther in
-    x = np.concatenate([rng.uniform(1.9, 2.0, 120), rng.uniform(1.3, 1.8, 80)])
-    ceiling = np.stack([x, np.full(200, 2.5), rng.uniform(-2, 2, 200)], 1)
-    points = np.concatenate([floor, wall, slab, ceiling])
-    idx = np.cumsum([0, 5000, 3000, 300, 200])
+    up, side = np.array([0.0, 1.0, 0.0]), np.array([-1.0, 0.0, 0.0])
+
+    def part(k, x, y, z, normal):
+        return np.stack([x, y, z], 1), np.tile(normal, (k, 1))
+
+    parts = [part(5000, rng.uniform(-2, 2, 5000), rng.normal(0, 0.3 * tol, 5000), rng.uniform(-2, 2, 5000), up),
+             part(3000, 2.0 + rng.normal(0, 0.3 * tol, 3000), rng.uniform(0, 2.5, 3000), rng.uniform(-2, 2, 3000),
+                  side)]
+    z = rng.uniform(-2, 2, 300)  # a slab 2-8 cm over the floor, rising along z, facing up
     tilt = np.array([0.0, 1.0, -0.015]) / np.linalg.norm([0.0, 1.0, -0.015])
-    planes = [(np.array([0.0, 1.0, 0.0]), 0.0, np.arange(idx[0], idx[1])),
-              (tilt, 0.05 * tilt[1], np.arange(idx[2], idx[3])),
-              (np.array([-1.0, 0.0, 0.0]), -2.0, np.arange(idx[1], idx[2])),
-              (np.array([0.0, -1.0, 0.0]), -2.5, np.arange(idx[3], idx[4]))]
-    kept = distinct(planes, points, tol)
-    assert [len(p[2]) for p in kept] == [5000, 3000, 200]  # the slab's plane is gone, the order kept
-    assert len(distinct(planes[1:], points, tol)) == 3  # without the floor, nothing makes the slab a duplicate
+    parts.append(part(300, rng.uniform(-1, 1, 300), 0.05 + 0.015 * z, z, tilt))
+    y = rng.uniform(0.0, 0.12, 200)  # the seam of the floor and the wall x = 2, as a 45-degree plane
+    seam = np.array([-1.0, 1.0, 0.0]) / np.sqrt(2)
+    parts.append(part(200, 2.0 - y, y, rng.uniform(-2, 2, 200), seam))
+    x = np.concatenate([rng.uniform(1.9, 2.0, 120), rng.uniform(1.3, 1.8, 80)])  # a ceiling strip above the wall
+    parts.append(part(200, x, np.full(200, 2.5), rng.uniform(-2, 2, 200), -up))
+    y = np.where(rng.uniform(size=250) < 0.96, rng.uniform(0.0, 0.11, 250), rng.uniform(0.13, 0.2, 250))
+    parts.append(part(250, rng.uniform(-1.5, 1.5, 250), y, np.full(250, 1.9), np.array([0.0, 0.0, -1.0])))
+    points = np.concatenate([p for p, _ in parts])
+    normals = np.concatenate([n for _, n in parts])
+    idx = np.cumsum([0] + [len(p) for p, _ in parts])
+    rows = [np.arange(idx[k], idx[k + 1]) for k in range(len(parts))]
+    planes = [(up, 0.0, rows[0]), (tilt, 0.05 * tilt[1], rows[2]), (-side, 2.0, rows[1]), (seam, seam[0] * 2.0, rows[3]),
+              (-up, -2.5, rows[4]), (np.array([0.0, 0.0, 1.0]), 1.9, rows[5])]
+    planes = [(n if n @ [0.0, 1.2, 0.0] - d > 0 else -n, d if n @ [0.0, 1.2, 0.0] - d > 0 else -d, r)
+              for n, d, r in planes]  # facing the cameras' centre, as bounding() turns them
+    assert np.mean(np.abs(points[rows[5]] @ up) <= 3 * tol) > 0.95  # the strip wall: near the floor
+    kept = distinct(planes, points, normals, tol)
+    assert [len(p[2]) for p in kept] == [5000, 3000, 200, 250]  # the slab and the seam are gone, the order kept
+    assert len(distinct(planes[1:], points, normals, tol)[0][2]) == 300  # without the floor the slab is kept
     cams = np.array([[0.0, 1.2, 0.0], [0.5, 1.4, -0.5]])
-    assert [len(p[2]) for p in bounding(planes, points, cams, tol)] == [5000, 3000, 200]
+    assert [len(p[2]) for p in bounding(planes, points, normals, cams, tol)] == [5000, 3000, 200, 250]
