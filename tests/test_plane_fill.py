@@ -350,7 +350,6 @@ def test_mirror_stereo_points_on_a_room_plane_become_its_surfels_with_its_materi
     assert not none[0].any() and none[1] is None
 
 
-
 def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():
     """``distinct`` (in ``bounding``): the floor round objects standing on it fits a thin plane a little above
     and tilted from the floor (its points within 3 tol of the floor and facing up like it), the pixels where a wall
@@ -381,8 +380,8 @@ def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():
     normals = np.concatenate([n for _, n in parts])
     idx = np.cumsum([0] + [len(p) for p, _ in parts])
     rows = [np.arange(idx[k], idx[k + 1]) for k in range(len(parts))]
-    planes = [(up, 0.0, rows[0]), (tilt, 0.05 * tilt[1], rows[2]), (-side, 2.0, rows[1]), (seam, seam[0] * 2.0, rows[3]),
-              (-up, -2.5, rows[4]), (np.array([0.0, 0.0, 1.0]), 1.9, rows[5])]
+    planes = [(up, 0.0, rows[0]), (tilt, 0.05 * tilt[1], rows[2]), (-side, 2.0, rows[1]),
+              (seam, seam[0] * 2.0, rows[3]), (-up, -2.5, rows[4]), (np.array([0.0, 0.0, 1.0]), 1.9, rows[5])]
     planes = [(n if n @ [0.0, 1.2, 0.0] - d > 0 else -n, d if n @ [0.0, 1.2, 0.0] - d > 0 else -d, r)
               for n, d, r in planes]  # facing the cameras' centre, as bounding() turns them
     assert np.mean(np.abs(points[rows[5]] @ up) <= 3 * tol) > 0.95  # the strip wall: near the floor

@@ -174,19 +174,12 @@ def distinct(bound: list, points: np.ndarray, normals: np.ndarray, tol: float) -
     kept: list[int] = []
     for i in sorted(range(len(bound)), key=lambda k: -len(bound[k][2])):
         inl = bound[i][2]
-        near = [np.abs(points[inl] @ bound[j][0] - bound[j][1]) <= 3 * tol for j in kept]
-        duplicate = False
-        for a, j in enumerate(kept):
-            if not len(inl) or near[a].mean() < DUPLICATE_NEAR:
-                continue
-            faces = normals[inl] @ bound[j][0] >= COS_DUPLICATE
-            seam = np.zeros(len(inl), dtype=bool)
-            for b in range(len(kept)):
-                if b != a:
-                    seam |= near[b]
-            if float(np.mean(near[a] & (faces | seam))) >= DUPLICATE_OWN:
-                duplicate = True
-                break
+        near = np.array([np.abs(points[inl] @ bound[j][0] - bound[j][1]) <= 3 * tol for j in kept])
+        near = near.reshape(len(kept), len(inl))
+        planes_near = near.sum(0)  # per point: how many kept planes it lies near
+        duplicate = any(len(inl) and near[a].mean() >= DUPLICATE_NEAR
+                        and np.mean(near[a] & ((normals[inl] @ bound[j][0] >= COS_DUPLICATE) | (planes_near > 1)))
+                        >= DUPLICATE_OWN for a, j in enumerate(kept))
         if not duplicate:
             kept.append(i)
     return [bound[i] for i in sorted(kept)]
@@ -316,8 +309,7 @@ def plane_fill_gaussians(rays, count: int = 20000, opacity: float = 0.9, tol_fra
     training rays (a ``RaySet`` with depth and normal targets). Returns (Gaussians or None, statistics);
     ``stats["room"]`` is the ``Room`` found (None without buffers or planes), for ``extend_plane_fill``."""
     stats = {"planes": 0, "bounding": 0, "duplicates": 0, "unseen": 0, "added": 0, "spacing": 0.0,
-             "spacing_fraction": 0.0,
-             "notes": [], "room": None}
+             "spacing_fraction": 0.0, "notes": [], "room": None}
     src = pixel_points(rays, max_points=400000, seed=seed)
     if src is None or len(src["points"]) < 100:
         stats["notes"] = ["plane fill: off, the capture has no depth and normal buffers on enough pixels"]
