@@ -7,7 +7,9 @@
      python -m stages.benchmark buffernet-step [--init sd2] [--size 512] [--dtype bf16] [--device cuda]
 (one buffer-network training step; see buffernet-step --help)
      python -m stages.benchmark seeds --scenes zoo_mirror_metal,zoo_mirror_only --set reconstruct.fill_anchor=3
-[--seeds 0,1] [--jobs 2] [--device cuda] (a settings change against the seed-to-seed spread; see seeds --help)"""
+[--seeds 0,1] [--jobs 2] [--device cuda] (a settings change against the seed-to-seed spread; see seeds --help)
+     python -m stages.benchmark ceiling --scene zoo_spheres [--flat wall_front] [--capture DIR] [--out FILE.json]
+(what a synthetic scene's test views allow at best: its ground truth's noise, surfaces at their mean colour)"""
 
 from __future__ import annotations
 
@@ -195,6 +197,55 @@ def seeds_main(argv) -> int:
     return 0
 
 
+def ceiling_main(argv) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m stages.benchmark ceiling",
+        description="What a synthetic scene's test views allow any reconstruction at best (stages/benchmark/"
+        "ceiling.py): the test views rendered again with another sampler seed and scored against the ground truth "
+        "as evaluate scores a render (tonemapped final; a noise-free exact render scores ~3 dB above it), and, with "
+        "--flat, rendered with the named objects' textures at their mean colour (everything else exact). Prints a "
+        "table and writes the JSON.",
+    )
+    p.add_argument("--scene", required=True, help="a synthetic scene of configs/scenes/ (its synth: section)")
+    p.add_argument("--capture", type=Path, default=None,
+                   help="its rendered ground truth (default results/<scene>/capture)")
+    p.add_argument("--flat", default="", help="comma-separated object names whose textures become their mean "
+                   "colour, e.g. the walls no training view sees; 'unseen': every textured object no training "
+                   "view's pixel centre hits first")
+    p.add_argument("--out", type=Path, default=None, help="JSON path (default results/benchmark/ceiling_<scene>.json)")
+    a = p.parse_args(argv)
+    from models.capture import CaptureError, read_capture
+    from models.synth.spec import parse_spec
+    from stages.benchmark.ceiling import format_table, run_ceiling, unseen_objects
+    from stages.config import ConfigError, load_config
+
+    capture = a.capture or Path("results") / a.scene / "capture"
+    out = a.out or Path("results/benchmark") / f"ceiling_{a.scene}.json"
+    flat = [n for n in a.flat.split(",") if n]
+    try:
+        config = load_config(a.scene)
+        if "synth" not in config:
+            raise ValueError(f"scene {a.scene!r} has no synth: section (the ceilings need the scene's own renderer)")
+        spec = parse_spec(config["synth"])
+        truth = read_capture(capture)
+        if flat == ["unseen"]:
+            flat = unseen_objects(spec, [v.camera for v in truth.split("train")])
+            print(f"textured objects no training view sees directly: {', '.join(flat) or 'none'}", file=sys.stderr)
+        for name in flat:
+            spec.object(name)
+        print(f"rendering {len(truth.split('test'))} test views {1 + bool(flat)} times at {spec.spp} spp ...",
+              file=sys.stderr, flush=True)
+        result = run_ceiling(spec, truth, flat)
+    except (CaptureError, ConfigError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    result.update(scene=a.scene, capture=str(capture))
+    print(format_table(result))
+    write_json_atomic(out, result)
+    print(f"wrote {out}")
+    return 0
+
+
 def _sizes(text: str) -> list[tuple[int, int]]:
     if text == "none":
         return []
@@ -256,6 +307,8 @@ def main(argv=None) -> int:
         return train_step_main(argv[1:])
     if argv[:1] == ["seeds"]:
         return seeds_main(argv[1:])
+    if argv[:1] == ["ceiling"]:
+        return ceiling_main(argv[1:])
     if argv[:1] == ["buffernet-step"]:
         from stages.benchmark.buffernet_step import buffernet_step_main
 
