@@ -12,8 +12,8 @@
    texture matters to the score or only the colour does; ``--flat unseen`` takes every textured object no
    training pixel hits first (``unseen_objects``).
 
-Measured (fast preset captures, 128 x 96, 256 spp): zoo_corridor noise 30.1 dB (a noise-free render ~33), its
-unseen start wall and door flat 45.1; zoo_spheres noise 37.4, its unseen front wall flat 29.8 (README).
+Measured (the zoo's captures, 128 x 96, 256 spp, `--flat unseen`): zoo_corridor noise 30.0 dB (a noise-free render
+~33), its unseen start wall and door flat 47.2; zoo_spheres noise 37.2, its unseen front wall flat 29.8 (README).
 """
 
 from __future__ import annotations
