@@ -79,6 +79,14 @@ def test_ceilings_noise_is_finite_and_flat_with_nothing_to_flatten_is_the_truth_
     assert flat["noise"] == same["noise"]  # the noise render does not depend on --flat
 
 
+def test_a_ground_truth_of_another_size_is_named(room):
+    import dataclasses
+
+    spec, capture = room
+    with pytest.raises(ValueError, match="test view 'test_000': the ground truth is 24 x 18, the scene renders 12 x 9"):
+        run_ceiling(dataclasses.replace(spec, resolution=(12, 9)), capture)
+
+
 def test_cli_names_a_missing_capture(tmp_path, capsys):
     from stages.benchmark.__main__ import main
 

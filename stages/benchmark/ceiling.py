@@ -24,7 +24,8 @@ import numpy as np
 
 from models.capture import Capture
 from models.metrics import hdr
-from models.metrics.scoring import ground_truth, score_layer
+from models.metrics.image import psnr
+from models.metrics.scoring import ground_truth
 from models.synth.spec import SynthSpec
 from models.synth.textures import make_texture
 
@@ -69,7 +70,9 @@ def unseen_objects(spec: SynthSpec, cameras) -> list[str]:
 
 
 def score_views(truth: Capture, rendered: Capture) -> dict[str, float]:
-    """Tonemapped final PSNR per test view of ``rendered`` against ``truth`` (at the truth view's peak)."""
+    """Tonemapped final PSNR per test view of ``rendered`` against ``truth`` (mu-law at the truth view's peak, as
+    ``evaluate``'s ``psnr_final_tonemapped``). Raises ValueError naming a view the truth lacks or whose size differs
+    (a capture of another scene or resolution)."""
     views = {v.name: v for v in truth.split("test")}
     out = {}
     for v in rendered.split("test"):
@@ -77,7 +80,11 @@ def score_views(truth: Capture, rendered: Capture) -> dict[str, float]:
             raise ValueError(f"rendered view {v.name!r} is not a test view of the ground truth")
         gt = ground_truth(views[v.name].buffers)["final"]
         pred = ground_truth(v.buffers)["final"]
-        out[v.name] = float(score_layer(pred, gt, "final", hdr.peak(gt))["psnr_final_tonemapped"])
+        if gt.shape != pred.shape:
+            raise ValueError(f"test view {v.name!r}: the ground truth is {gt.shape[1]} x {gt.shape[0]}, the scene "
+                             f"renders {pred.shape[1]} x {pred.shape[0]} (a capture of another scene or resolution?)")
+        top = hdr.peak(gt)
+        out[v.name] = float(psnr(hdr.mu_law(pred, top), hdr.mu_law(gt, top)))
     return out
 
 
