@@ -14,7 +14,7 @@ from models.capture.camera import Camera
 from models.reconstruction.data import RaySet
 from models.gaussians import Gaussians
 from models.reconstruction.plane_fill import (bounding, distinct, extend_plane_fill, find_planes, pixel_points,
-                                              plane_fill_gaussians, stereo_on_planes)
+                                              plane_fill_gaussians, relight_plane_fill, stereo_on_planes, Room)
 from models.reconstruction.reflection_fill import seen_empty
 
 FLOOR, CEILING, LEFT, METAL, BACK, FRONT, TABLE = (0.6, 0.5, 0.4), (0.8, 0.8, 0.8), (0.3, 0.6, 0.3), \
@@ -390,3 +390,38 @@ def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():
     assert len(distinct(planes[1:], points, normals, tol)[0][2]) == 300  # without the floor the slab is kept
     cams = np.array([[0.0, 1.2, 0.0], [0.5, 1.4, -0.5]])
     assert [len(p[2]) for p in bounding(planes, points, normals, cams, tol)] == [5000, 3000, 200, 250]
+
+
+def test_the_relit_fill_is_its_planes_albedo_times_the_light_where_it_is():
+    """A floor seen only far from the lamp (z < -1), its unseen part (z > -1) under it: the fill takes the floor's
+    albedo (seen radiance / irradiance) x the irradiance at each of its Gaussians, not the seen radiance nearby.
+    A lamp pixel on the floor lends nothing; a Gaussian on no plane keeps its colour."""
+    rng = np.random.default_rng(1)
+    albedo = np.array([0.6, 0.5, 0.3])
+
+    def light(points, normals):  # E / pi: a lamp above z = 1, and an ambient floor
+        assert np.allclose(normals, [0.0, 1.0, 0.0])
+        e = 0.05 + 0.5 * np.exp(-((points[:, 0]) ** 2 + (points[:, 2] - 1.0) ** 2))
+        return np.tile(e[:, None], (1, 3))
+
+    seen = np.stack([rng.uniform(-2, 2, 4000), np.zeros(4000), rng.uniform(-2.5, -1.0, 4000)], 1)
+    radiance = albedo * light(seen + [0, 0.1, 0], np.tile([0.0, 1.0, 0.0], (4000, 1)))
+    emitting = np.zeros(4000, bool)
+    emitting[:40] = True  # a light source seen on the floor: its radiance is not the floor's material
+    radiance[:40] = 20.0
+    src = {"points": seen, "normals": np.tile([0.0, 1.0, 0.0], (4000, 1)), "diffuse": radiance,
+           "f0": np.zeros((4000, 3)), "roughness": np.ones(4000), "emitting": emitting}
+    room = Room(src=src, bound=[(np.array([0.0, 1.0, 0.0]), 0.0, np.arange(4000))], lo=np.array([-2, 0, -2.5]),
+                hi=np.array([2, 2.5, 2.5]), tol=0.02, h=0.04)
+    fill = np.stack([rng.uniform(-2, 2, 5000), np.zeros(5000), rng.uniform(-1.0, 2.5, 5000)], 1)
+    fill = np.concatenate([fill, [[0.0, 1.0, 1.0]]])  # a Gaussian in the air: on no plane
+    old = np.full((len(fill), 3), 0.07)
+    new, stats = relight_plane_fill(room, fill, old, light, seed=0)
+    truth = albedo * light(fill + [0, 3 * 0.8 * 0.04, 0], np.tile([0.0, 1.0, 0.0], (len(fill), 1)))
+    assert stats["relit"] == 5000 and stats["planes"] == 1
+    err = np.abs(new[:-1] - truth[:-1]) / truth[:-1]
+    assert np.median(err) < 0.02 and np.quantile(err, 0.99) < 0.15  # the neighbour averages blur a little
+    under = np.linalg.norm(fill[:-1, [0, 2]] - [0.0, 1.0], axis=1) < 0.3
+    assert new[:-1][under].mean(0) == pytest.approx(albedo * 0.5, rel=0.1)  # 7x what the seen floor sends there
+    np.testing.assert_array_equal(new[-1], old[-1])
+    assert relight_plane_fill(None, fill, old, light)[1]["relit"] == 0

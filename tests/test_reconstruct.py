@@ -376,7 +376,7 @@ def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carr
         frozen = name in ("means", "quats", "log_scales")
         assert bool((p.grad[trainer.prior] == 0).all()) == frozen and bool((p.grad[~trainer.prior] == 1).all()), name
         p.grad = None
-    trainer.config = dataclasses.replace(trainer.config, prune_min_weight=1e9)  # pruning by weight removes all
+    trainer.config = dataclasses.replace(trainer.config, prune_min_weight=1e9, prune_views=10**6)  # pruning by weight removes all
     removed = trainer.prune()
     assert removed == len(init.means) and int(trainer.prior.sum()) == n_prior == len(trainer.params["means"])
     assert torch.equal(trainer.params["means"].detach(), before)
@@ -387,6 +387,70 @@ def test_plane_fill_gaussians_are_priors_that_pruning_keeps_and_checkpoints_carr
     off = Trainer(capture, init, ReconstructConfig.from_dict(dict(SMALL, plane_fill_count=0, sphere_fill=False)),
                   tracer())
     assert not off.prior.any() and not any(d.startswith("plane fill") for d in off.decisions)
+
+
+def test_pruning_keeps_what_only_a_few_views_see_until_every_view_was_measured(demo, tmp_path):
+    """A pruning step traces ``prune_views`` views, the next block of one random cycle through them, and a Gaussian
+    goes only when its mean weight over the blocks that covered every view is below the threshold: one seen by a
+    single view is never pruned (drawing 8 views anew at each step removed it whenever that view was not drawn),
+    one no view sees goes after exactly ceil(views / prune_views) steps; the cycle and the memory survive a
+    checkpoint and follow the Gaussians through the removal."""
+    capture, init = demo
+    cfg = dict(SMALL, plane_fill_count=0, sphere_fill=False, prune_views=2)
+    trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    n_views = len(trainer.rays.views)
+    blocks = -(-n_views // 2)
+    assert blocks >= 2
+    threshold = trainer.config.prune_min_weight * (trainer.rays.views[0].camera.height / 768) ** 2
+    n = len(trainer.params["means"])
+    drawn = []
+
+    def weights(views, reflections=False):  # the mean over ``views``; Gaussian 0: seen by view 0 alone (weight
+        drawn.append(list(views))  # 10 x threshold x views there), Gaussian 1: by none, the others by all
+        w = torch.full((len(trainer.params["means"]),), 10 * threshold)
+        w[0] = 10 * threshold * n_views / len(views) if 0 in views else 0.0
+        w[1] = 0.0 if len(w) == n else w[1]  # (gone after the first cycle)
+        return w
+
+    trainer.blending_weights = weights
+    removed = [trainer.prune() for _ in range(blocks)]
+    assert removed[:-1] == [0] * (blocks - 1) and removed[-1] == 1  # Gaussian 1 goes once all views were measured
+    assert sorted(v for block in drawn for v in block) == list(range(n_views)) + list(range(2 * blocks - n_views))
+    assert len(trainer.params["means"]) == n - 1 and trainer.prune_memory.shape == (n - 1, blocks)
+    trainer.save_checkpoint(tmp_path / "last.pt")
+    again = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    again.load_checkpoint(tmp_path / "last.pt")
+    assert torch.equal(again._prune_order, trainer._prune_order) and again._prune_round == blocks
+    assert torch.equal(again.prune_memory.nan_to_num(-1), trainer.prune_memory.nan_to_num(-1))
+    for _ in range(3 * blocks):  # Gaussian 0 (still row 0) stays however the blocks fall
+        assert trainer.prune() == 0
+
+
+def test_the_plane_fill_is_relit_once_when_asked_and_says_so(demo, tmp_path):
+    """``plane_fill_relight``: at ``plane_fill_relight_at`` of the way through the reflection phase the plane fill's
+    Gaussians (all of them here: no mirror fill) take their plane's albedo x the traced light where they are
+    (plane_fill.relight_plane_fill's own test checks the values): logged once among the decisions, their colours
+    changed, and a resumed run does not do it again."""
+    capture, init = demo
+    cfg = dict(SMALL, iterations=12, warmup=4, plane_fill_count=4000, sphere_fill=False, plane_fill_relight=True,
+               plane_fill_relight_at=0.5, checkpoint_every=6)
+    trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    rows = torch.nonzero(trainer.prior).reshape(-1)
+    while trainer.step < 8:  # relit at step 4 + 0.5 x (12 - 4) = 8
+        trainer.train_step()
+    assert not any("plane fill relit" in d for d in trainer.decisions)
+    before = trainer.params["diffuse"].detach()[rows].clone()
+    trainer.train_step()
+    lines = [d for d in trainer.decisions if "plane fill relit" in d]
+    assert len(lines) == 1 and lines[0].startswith(f"step 8: plane fill relit: {len(rows)} of its {len(rows)} ")
+    change = (trainer.params["diffuse"].detach()[rows] - before).abs().mean(dim=1)
+    assert float(change.median()) > 1e-3  # far more than one Adam step moves them
+    trainer.save_checkpoint(tmp_path / "last.pt")
+    again = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    again.load_checkpoint(tmp_path / "last.pt")
+    again.train_step()
+    assert again.plane_fill_relit and not any("plane fill relit" in d for d in again.decisions)
+    assert ReconstructConfig().plane_fill_relight is False
 
 
 def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo, tmp_path):
@@ -412,7 +476,7 @@ def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo, tmp_p
         assert bool((p.grad[plane_rows] == 0).all()) == (name in ("means", "quats", "log_scales")), name
         assert bool((p.grad[~on.prior] == 1).all()), name
         p.grad = None
-    on.config = dataclasses.replace(on.config, prune_min_weight=1e9)
+    on.config = dataclasses.replace(on.config, prune_min_weight=1e9, prune_views=10**6)
     on.prune()  # the priors stay, the fixed ones still last
     assert int(on.fixed.sum()) == n_sphere and on.fixed[-n_sphere:].all()
     on.save_checkpoint(tmp_path / "last.pt")
@@ -455,7 +519,7 @@ def test_prior_smoothness_pulls_a_fill_colour_toward_its_neighbours_and_survives
         trainer.params["diffuse"][r, 0] += eps
     assert abs((up - down) / (2 * eps) - float(grad[r, 0])) < 1e-4 * max(1.0, abs(float(grad[r, 0])))
     trainer.params["diffuse"].grad = None
-    trainer.config = dataclasses.replace(trainer.config, prune_min_weight=1e9)
+    trainer.config = dataclasses.replace(trainer.config, prune_min_weight=1e9, prune_views=10**6)
     trainer.prune()  # every Gaussian but the fill's
     assert torch.nonzero(trainer.prior).reshape(-1).tolist() == list(range(len(rows)))
     assert float(trainer._prior_smooth().detach()) == pytest.approx(value, rel=1e-6)

@@ -94,7 +94,9 @@ class ReconstructConfig:
     prune_min_weight: float = setting(0.1, "keep Gaussians whose blending weight summed over a view, averaged over "
                                       "views, is >= this at the reference's 768-pixel image height (scaled by "
                                       "(H / 768)^2 at height H)", minimum=0)
-    prune_views: int = setting(8, "views traced to measure blending weights at a pruning step", minimum=1)
+    prune_views: int = setting(8, "views traced to measure blending weights at a pruning step: the next block of a "
+                               "random cycle through the training views; a Gaussian goes once the blocks have "
+                               "covered them all (Trainer.prune)", minimum=1)
     far_field: str = setting("auto", "auto (only if reflections can see past the capture) | on | off",
                              enum=["auto", "on", "off"])
     far_field_count: int = setting(75000, "far-field Gaussians added at the end of warm-up", minimum=0)
@@ -121,6 +123,13 @@ class ReconstructConfig:
                                     "warm-up, geometry frozen, never pruned for want of blending weight "
                                     "(plane_fill.py; zoo_lamps tonemapped final 26.0 -> 29.9); 0 = off (the paper)",
                                     minimum=0)
+    plane_fill_relight: bool = setting(False, "at the end of warm-up (when the lights the cameras see only in "
+                                       "mirrors are placed) the plane fill's colour becomes its plane's albedo (seen "
+                                       "radiance / traced irradiance) x the irradiance the model sends where each of "
+                                       "its Gaussians is, not the nearest seen radiance (plane_fill.relight_plane_fill)")
+    plane_fill_relight_at: float = setting(0.0, "when the plane fill is relit: this fraction of the way from the end "
+                                           "of warm-up to the last step (0 = when reflections turn on)",
+                                           minimum=0, maximum=1)
     sphere_fill: bool = setting(False, "Gaussians on the unseen far sides of round shiny objects: a sphere fitted "
                                 "to each piece of shiny pixel points that is one (residual, normals, arc), the rest "
                                 "of it covered with Gaussians held fixed (nothing of theirs trains), never pruned "
