@@ -450,7 +450,7 @@ def test_the_plane_fill_is_relit_once_when_asked_and_says_so(demo, tmp_path):
     again.load_checkpoint(tmp_path / "last.pt")
     again.train_step()
     assert again.plane_fill_relit and not any("plane fill relit" in d for d in again.decisions)
-    assert ReconstructConfig().plane_fill_relight is False
+    assert ReconstructConfig().plane_fill_relight is True
 
 
 def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo, tmp_path):
