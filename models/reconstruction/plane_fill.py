@@ -473,9 +473,9 @@ def relight_plane_fill(room: Room | None, means: np.ndarray, diffuse: np.ndarray
                        seed: int = 0) -> tuple[np.ndarray, dict]:
     """The plane fill's colour as the plane's albedo x the light where each of its Gaussians is, not the radiance
     of the nearest seen part of the plane (``_fill`` step 5): a floor seen only far from the lamp, continued under
-    it, is the same material lit more (zoo_mirror_only: the cameras see the floor 2-3 m from the ceiling light,
-    diffuse radiance 0.09-0.11; the unseen floor under it is 0.20-0.24 and the fill put 0.10 there, a third of
-    the test views' error).
+    it, is the same material lit more (zoo_lamps: the unseen ceiling and the wall round the floor lamp, 31.5 ->
+    33.0 dB at two seeds). It does not cure zoo_mirror_only's dark floor under a light seen only in the mirror:
+    at the end of warm-up that light is still weak, and training then fits the mirror's grazing view (README).
 
     ``means`` [M, 3] and ``diffuse`` [M, 3] are the fill's Gaussians (those on none of ``room``'s planes that have
     seen points keep their colour); ``irradiance(points [K, 3], normals [K, 3]) -> [K, 3]`` (float64 arrays) is

@@ -744,7 +744,7 @@ class Trainer:
         ``ceil(views / prune_views)`` blocks (``prune_memory`` [N, blocks], NaN where not measured yet): it goes
         only once those blocks have covered every view. Drawing the views anew at each step and pruning on them
         alone removed what only a few views see whenever none of them was drawn (zoo_lamps: the table lamp, seen
-        by ~8 of 24 views, vanished between two runs that differed in nothing it depends on, and the test view
+        by roughly a third of the 24 views (estimated from the orbit), vanished between two runs that differed in nothing it depends on, and the test view
         facing it lost 3.2 dB)."""
         n_all = len(self.rays.views)
         n_views = min(self.config.prune_views, n_all)
