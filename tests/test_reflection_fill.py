@@ -99,6 +99,28 @@ def test_highlight_fill_puts_emitters_where_bright_open_reflections_leave_the_bo
     assert (torch.sigmoid(lights.opacity_logits) - 0.5).abs().max() < 1e-6 and (lights.roughness == 1).all()
 
 
+def test_highlight_fill_says_how_many_highlights_end_on_the_plane_fill():
+    """The same lamp; the opaque ceiling over x < 0, marked as the plane fill, blocks the x < -0.3 highlights:
+    counted and noted (a light on an unseen ceiling gets no emitters); the emitters (x > 0.3) are the same as
+    without the mask, and without it nothing is counted."""
+    rays = _mirror_rays()
+    x = rays.origins[:, 0]
+    rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
+    rays.targets["diffuse"][:] = 0.5
+    scene = _scene()
+    ceiling = torch.arange(len(scene)) >= 8  # _scene(): 8 faint corners, then the ceiling
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling)
+    plain, plain_stats = highlight_fill_gaussians(rays, reference_trace, scene)
+    assert stats["on_fill"] == (x < -0.3).sum().item() and plain_stats["on_fill"] == 0
+    on_fill = [n for n in stats["notes"] if "end on the plane fill" in n]
+    assert len(on_fill) == 1 and f"{stats['on_fill']} of {(x.abs() > 0.3).sum().item()} highlight" in on_fill[0]
+    assert stats["notes"][1:] == plain_stats["notes"]  # the sweep's own note (box scale at its edge) kept
+    assert not any("plane fill" in n for n in plain_stats["notes"])
+    torch.testing.assert_close(lights.means, plain.means)
+    _, seen = highlight_fill_gaussians(rays, reference_trace, scene, fill=~ceiling)  # blocked by seen geometry
+    assert seen["on_fill"] == 0 and not any("plane fill" in n for n in seen["notes"])
+
+
 def _lamp_over_mirror(lamp_z: float = 1.6, half: float = 0.4) -> RaySet:
     """Five cameras (four of them off to the sides) looking at a floor mirror (z = -0.9); the square lamp
     |x|, |y| < ``half`` at height ``lamp_z`` (above the scene's box, whose top is z = 1): a mirror pixel is

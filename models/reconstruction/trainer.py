@@ -502,6 +502,7 @@ class Trainer:
         if reflections and self.far_field and not self.far_field_added:
             # the fills look at the captured scene alone: its box, and its transmittance (not the far shell's)
             scene = self.gaussians() if self.device.type == "cpu" else self.gaussians().to("cpu")
+            plane_fill = (self.prior & ~self.fixed).cpu()  # the plane fill's rows of ``scene``
             fills = []
             if cfg.reflection_fill_count > 0:
                 fills.append((*reflection_fill_gaussians(self.rays, self.backend.trace, scene,
@@ -574,11 +575,13 @@ class Trainer:
                 self._add_fill(*closed, "%(added)d plane-fill Gaussians reaching the walls placed (grown: %(grown)s)",
                                prior=True)
             if cfg.highlight_fill:
-                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed)
+                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
+                                                         fill=plane_fill)
                 stats["inside"] = keep_inside(lights.means, self._room) if lights is not None else 0
                 self._add_fill(lights, stats, "%(added)d emitting Gaussians where %(highlight_rays)d open highlight "
                                "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "
-                               "searched %(box_scale_range)s; %(inside)d moved in front of a wall placed)")
+                               "searched %(box_scale_range)s; %(inside)d moved in front of a wall placed; %(on_fill)d more end on the "
+                               "plane fill)")
         relight_at = cfg.warmup + int(cfg.plane_fill_relight_at * (cfg.iterations - cfg.warmup))
         if (reflections and cfg.plane_fill_relight and self._room is not None and not self.plane_fill_relit
                 and self.step >= relight_at):
