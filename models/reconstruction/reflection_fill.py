@@ -304,7 +304,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     if fill is not None and bool(fill.any()):
         blocked = torch.nonzero(bright & ~open_).reshape(-1)
         if len(blocked):
-            without = trace_fn((x + step * r)[blocked], r[blocked], gaussians.subset(~fill.to(gaussians.means.device)))
+            rest = gaussians.subset(~fill.to(gaussians.means.device))
+            without = trace_fn((x + step * r)[blocked], r[blocked], rest)
             stats["on_fill"] = int((without.transmittance.reshape(-1) > 0.5).sum())
         if stats["on_fill"] >= ON_FILL_NOTE:
             stats["notes"].append(
