@@ -184,6 +184,35 @@ def test_one_and_two_threads_identical():
         assert err < 1e-5, f"seed {seed}: grad {name} differs by {err:.3g} (relative)"
 
 
+def test_reused_replay_buffer_leaves_a_kept_one_and_every_output_alone():
+    """Traces that keep no replay buffer (no_grad, trace_fused) reuse one spare buffer on the CPU; a trace that
+    keeps its buffer for a backward gets its own, so traces in between do not change its gradients."""
+    seed = fresh_seed()
+    gs, origins, dirs = scene_and_rays(seed, n=300, res=32)
+    other_o, other_d = origins.flip(0).contiguous(), dirs.flip(0).contiguous()
+    alone = gs.to().requires_grad_()
+    out = Tracer(TracerConfig()).trace(origins, dirs, alone)
+    sum(getattr(out, k).sum() for k in OUTPUTS).backward()
+
+    tracer = Tracer(TracerConfig())
+    g = gs.to().requires_grad_()
+    with torch.no_grad():
+        first = tracer.trace(other_o, other_d, g)
+    spare = tracer._spare_replay
+    assert spare is not None, "a no_grad trace on the CPU leaves its buffer as the spare"
+    kept = tracer.trace(origins, dirs, g)  # keeps its own buffer for the backward below
+    with torch.no_grad():
+        again = tracer.trace(other_o, other_d, g)  # reuses the spare: the same shape
+    assert tracer._spare_replay is spare, "the same shape reuses the spare buffer"
+    tracer.trace_fused(other_o, other_d, gs.to(), {"diffuse": torch.zeros(len(other_o), 3)}, {"diffuse": 1.0})
+    sum(getattr(kept, k).sum() for k in OUTPUTS).backward()
+    for name in FORWARD + ["hit_count", "blended_count", "candidates"]:
+        assert torch.equal(getattr(first, name), getattr(again, name)), f"seed {seed}: reused buffer: {name}"
+        assert torch.equal(getattr(kept, name), getattr(out, name)), f"seed {seed}: {name}"
+    for name, v in g.params().items():
+        assert torch.equal(v.grad, alone.params()[name].grad), f"seed {seed}: grad {name} after traces in between"
+
+
 @pytest.mark.parametrize("variant", [{}, {"traversal": "kbuffer", "k": 2}])
 def test_replay_overflow_grows_and_reruns(variant):
     seed = fresh_seed()

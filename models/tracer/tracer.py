@@ -109,6 +109,8 @@ class Tracer:
         self._loaded = False
         self.last_overflow_rays = 0
         self._checks: DeferredChecks | None = None  # inside deferred_checks(): the traces' flags, not read back
+        self._keep_replay = True   # the next _forward's replay buffer is kept for a backward (trace sets it)
+        self._spare_replay: ReplayArrays | None = None  # CPU: the buffer of the last trace that kept none (_replay)
         self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles
 
     @property
@@ -223,7 +225,10 @@ class Tracer:
         with self.timer.section("tracer_host"):
             origins, dirs = self._check_rays(origins, dirs, deferred=self._checks is not None)
             self._ensure_updated(gaussians)
-            res = TraceFunction.apply(self, origins, dirs, *gaussians.params().values())
+            params = gaussians.params().values()
+            # no backward can follow (no_grad, or nothing requires grad): the replay buffer may be reused (_replay)
+            self._keep_replay = torch.is_grad_enabled() and any(p.requires_grad for p in params)
+            res = TraceFunction.apply(self, origins, dirs, *params)
         diffuse, depth, normal, rough, f0, trans, front, hits, blended, cand, obb = res
         return TraceOutput(diffuse=diffuse, depth=depth, normal=normal, roughness=rough, f0=f0,
                            transmittance=trans, front_depth=front, hit_count=hits, blended_count=blended,
@@ -399,7 +404,7 @@ class Tracer:
                           wp.empty((n_rays, h), dtype=wp.int32, device=self.device))
         self._octants = self._octants_for(n_rays)
         while True:
-            rep = ReplayArrays.allocate(n_rays, self.capacity, self.device)
+            rep = self._replay(n_rays, reusable=with_grads or not self._keep_replay)
             grads = self._rows(n_gaussians).take() if with_grads else None
             if n_rays == 0 or n_gaussians == 0 or self.bvh.count == 0:
                 outs["transmittance"].fill_(1.0)
@@ -420,6 +425,20 @@ class Tracer:
             self.last_overflow_rays += n_over
             self._grow(most, n_over)
         return outs, rep, grads
+
+    def _replay(self, n_rays: int, reusable: bool) -> ReplayArrays:
+        """The launch's replay buffer. On a CPU, a trace whose buffer nobody keeps (trace_fused, which replays it
+        in the same launch; trace() when no backward can follow: renders, evaluation) takes the spare one of the
+        last such trace when it has the same shape: a fresh [rays, capacity] buffer is touched page by page
+        (16 MB at 16k rays x 64 slots; ~7 % of benchmark (b)'s forward on 2 threads). A CUDA device's
+        allocator pools anyway: always fresh there."""
+        if not (reusable and self.is_cpu):
+            return ReplayArrays.allocate(n_rays, self.capacity, self.device)
+        spare = self._spare_replay
+        if spare is None or spare.ids.shape != (n_rays, self.capacity):
+            self._spare_replay = spare = None  # (the old one goes before the new one is made)
+            spare = self._spare_replay = ReplayArrays.allocate(n_rays, self.capacity, self.device)
+        return spare
 
     def _grow(self, most: int, n_over: int | None) -> None:
         """A ray needed ``most`` replay slots: at least double the capacity (within max_replay_capacity)."""
