@@ -45,15 +45,16 @@ def forward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePar
 
 @wp.kernel
 def forward_kernel(origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), g: GaussianData,
-                   prm: TraceParams, rep: Replay, outs: RayOutputs, ob: OrderedBvh):
-    ray = wp.tid()
+                   prm: TraceParams, rep: Replay, outs: RayOutputs, ob: OrderedBvh, offset: int):
+    ray = wp.tid() + offset  # a launch covers rays offset .. offset + dim - 1 of the whole arrays
     forward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, ob)
 
 
 @wp.kernel
 def backward_kernel(origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), g: GaussianData,
-                    prm: TraceParams, rep: Replay, outs: RayOutputs, up: RayGrads, grads: GaussianGrads):
-    ray = wp.tid()
+                    prm: TraceParams, rep: Replay, outs: RayOutputs, up: RayGrads, grads: GaussianGrads,
+                    offset: int):
+    ray = wp.tid() + offset
     backward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, up, grads)
 
 
@@ -72,9 +73,10 @@ def l1_term(out: float, target: float, scale: float) -> wp.vec2:
 @wp.kernel
 def fused_kernel(origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), g: GaussianData,
                  prm: TraceParams, rep: Replay, outs: RayOutputs, targets: RayGrads, loss: L1Loss,
-                 up: RayGrads, ray_loss: wp.array(dtype=float), grads: GaussianGrads, ob: OrderedBvh):
+                 up: RayGrads, ray_loss: wp.array(dtype=float), grads: GaussianGrads, ob: OrderedBvh,
+                 offset: int):
     """Forward, L1 loss gradient into `up` (per ray) and backward, in one thread per ray."""
-    ray = wp.tid()
+    ray = wp.tid() + offset
     ok = forward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, ob)
     if ok == 0:
         return

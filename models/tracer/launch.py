@@ -81,6 +81,27 @@ class ReplayArrays:
         return s
 
 
+class LaunchViews:
+    """The Replay / RayOutputs structs over the WHOLE arrays of a run, made once per (replay, outputs) pair: every
+    chunk of rays is a launch with an offset into them (the kernels' ``offset``), not a slice (~20 us of Python per
+    sliced array: 16 launches x 20 arrays were ~7 ms per 16k-ray trace on 2 threads). Holds the pair it made them
+    for, so a re-run's new replay buffer (overflow) gets new structs; ``extra()`` is made with them (the ordered
+    BVH's per-ray heap, allocated by the run)."""
+
+    def __init__(self, n_rays: int, extra):
+        self.n_rays = n_rays
+        self.extra = extra
+        self._made: tuple | None = None  # (rep, outs, structs), replaced as one (the pool's threads call of())
+
+    def of(self, rep: "ReplayArrays", outs: dict[str, wp.array]) -> tuple:
+        """(Replay, RayOutputs, extra()) over the whole arrays of ``rep`` and ``outs``."""
+        made = self._made
+        if made is None or made[0] is not rep or made[1] is not outs:
+            made = (rep, outs, (rep.view(0, self.n_rays), outputs_view(outs, 0, self.n_rays), self.extra()))
+            self._made = made
+        return made[2]
+
+
 def allocate_outputs(n_rays: int, device: str) -> dict[str, wp.array]:
     return {k: wp.zeros(n_rays, dtype=dt, device=device) for k, (dt, _) in OUT_FIELDS.items()}
 

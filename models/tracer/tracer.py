@@ -31,6 +31,7 @@ from models.tracer.launch import (
     GRAD_FIELDS,
     RAY_GRAD_FIELDS,
     GradRows,
+    LaunchViews,
     ReplayArrays,
     allocate_outputs,
     empty_ordered,
@@ -38,7 +39,6 @@ from models.tracer.launch import (
     ray_chunks,
     ray_grads_struct,
     ray_grads_view,
-    rows,
     run_chunks,
     thread_stripes,
 )
@@ -275,13 +275,13 @@ class Tracer:
 
         o, d = to_warp(origins, wp.vec3, self.device), to_warp(dirs, wp.vec3, self.device)
 
+        tv, uv = ray_grads_struct(tgt), ray_grads_view(up, 0, n_rays)
+        views = LaunchViews(n_rays, lambda: self._ordered_struct(0, n_rays))
+
         def launch(prm, rep, outs, a, b, grads):
-            tviews = {k: (v[a:b] if k in targets and float(weights.get(k, 0.0)) != 0.0 else v) for k, v in tgt.items()}
+            rv, ov, ob = views.of(rep, outs)
             wp.launch(kernels.fused_kernel, dim=b - a, device=self.device,
-                      inputs=[o[a:b], d[a:b], gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
-                              ray_grads_struct(tviews),
-                              loss_prm, ray_grads_view(up, a, b), ray_loss[a:b], grads,
-                              self._ordered_struct(a, b)])
+                      inputs=[o, d, gdata, prm, rv, ov, tv, loss_prm, uv, ray_loss, grads, ob, a])
 
         outs, rep, grads = self._run(n_rays, len(gaussians), gdata, launch, with_grads=True)
         out = self._outputs_to_torch(outs, gaussians)
@@ -457,10 +457,11 @@ class Tracer:
         gdata = self._gaussian_data(inputs)
         o, d = to_warp(origins, wp.vec3, self.device), to_warp(dirs, wp.vec3, self.device)
 
+        views = LaunchViews(n_rays, lambda: self._ordered_struct(0, n_rays))
+
         def launch(prm, rep, outs, a, b, _grads):
-            wp.launch(kernels.forward_kernel, dim=b - a, device=self.device,
-                      inputs=[rows(o, a, b), rows(d, a, b), gdata, prm, rep.view(a, b), outputs_view(outs, a, b),
-                              self._ordered_struct(a, b)])
+            rv, ov, ob = views.of(rep, outs)
+            wp.launch(kernels.forward_kernel, dim=b - a, device=self.device, inputs=[o, d, gdata, prm, rv, ov, ob, a])
 
         outs, rep, _ = self._run(n_rays, inputs[0].shape[0], gdata, launch, with_grads=False)
         return {"o": o, "d": d, "gdata": gdata, "outs": outs, "rep": rep, "capacity": self.capacity}
@@ -477,10 +478,11 @@ class Tracer:
             self.capacity = saved_cap
             outs, rep, gdata = state["outs"], state["rep"], state["gdata"]
 
+            rv, ov, uv = rep.view(0, n_rays), outputs_view(outs, 0, n_rays), ray_grads_view(up, 0, n_rays)
+
             def job(i, a, b):
                 wp.launch(kernels.backward_kernel, dim=b - a, device=self.device,
-                          inputs=[rows(state["o"], a, b), rows(state["d"], a, b), gdata, prm, rep.view(a, b),
-                                  outputs_view(outs, a, b), ray_grads_view(up, a, b), grads[i]])
+                          inputs=[state["o"], state["d"], gdata, prm, rv, ov, uv, grads[i], a])
 
             with self.timer.section("tracer_backward"):
                 run_chunks(self._pool, [(lambda i=i, chunks=chunks: [job(i, a, b) for a, b in chunks])
