@@ -122,6 +122,40 @@ def test_train_step_quick_writes_complete_json(tmp_path, capsys):
     assert "trace fwd" in printed and "overhead floor (cpu, 64 rays)" in printed
 
 
+def test_train_step_times_a_real_run_resumed_from_its_checkpoint(tmp_path, capsys):
+    """--checkpoint: the run's own Trainer at the checkpoint's step (its Gaussians, its config), not the random
+    room; a checkpoint of another config still loads and the difference is reported; the four arguments go
+    together."""
+    import dataclasses
+
+    from models.reconstruction import ReconstructConfig, Trainer
+    from models.settings import to_dict
+    from models.tracer import Tracer, TracerConfig
+    from stages.benchmark.room_capture import room_capture
+    from stages.benchmark.train_step import TrainStepBenchmarkConfig, bench_checkpoint
+
+    capture, init = room_capture(Tracer(TracerConfig(num_threads=1)), 2000, 2, 32, 24, seed=3)
+    config = ReconstructConfig(iterations=100, warmup=0, rays_per_step=64, far_field="off", prune_every=0,
+                               checkpoint_every=100)
+    trainer = Trainer(capture, init, config, Tracer(config.tracer))
+    for _ in range(3):
+        trainer.train_step()
+    ckpt = tmp_path / "last.pt"
+    trainer.save_checkpoint(ckpt)
+    cfg = TrainStepBenchmarkConfig(steps=2, warmup_steps=1, threads=1)
+    row = bench_checkpoint(to_dict(config, runtime=False), capture, init, ckpt, "cpu", cfg)
+    assert row["step"] == 3 and row["rays"] == 64 and row["checkpoint_config"] is None
+    assert row["n_gaussians"] == len(trainer.params["means"])
+    assert TRAIN_STEP_KEYS <= set(row) and row["tracer_forward_ms"] > 0
+
+    notes = []
+    other = to_dict(dataclasses.replace(config, rays_per_step=32), runtime=False)
+    row = bench_checkpoint(other, capture, init, ckpt, "cpu", cfg, progress=notes.append)
+    assert row["rays"] == 32 and "rays_per_step" in row["checkpoint_config"] and "rays_per_step" in notes[0]
+
+    assert main(["train-step", "--checkpoint", str(ckpt), "--scene", "demo"]) == 1
+    assert "missing --capture, --init" in capsys.readouterr().err
+
 def test_gpu_busy_is_the_median_nvml_utilisation_while_steps_repeat(monkeypatch):
     """GPU busy: NVML's utilisation (percent) sampled while the step repeats, the first quarter of the samples
     dropped (NVML averages over its own period, which may reach back before the loop), median, as a fraction;

@@ -273,6 +273,12 @@ def train_step_main(argv) -> int:
     p.add_argument("--sync-checks", action="store_true",
                    help="read the tracer's checks back at every trace, as before deferred checks (the A/B of the "
                    "GPU's host syncs; the CPU always does)")
+    p.add_argument("--checkpoint", help="time a real run instead of the random room: its checkpoint "
+                   "(<model>/checkpoints/last.pt), with --scene, --capture and --init; the scene's own reconstruct "
+                   "config, one row at the checkpoint's step")
+    p.add_argument("--scene", help="with --checkpoint: the scene (configs/scenes/<scene>.yaml)")
+    p.add_argument("--capture", help="with --checkpoint: the scene's capture folder")
+    p.add_argument("--init", help="with --checkpoint: the run's init/points.ply")
     p.add_argument("--out", type=Path, help="write the JSON result here")
     p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test, not a measurement)")
     a = p.parse_args(argv)
@@ -280,7 +286,8 @@ def train_step_main(argv) -> int:
 
     cfg = TrainStepBenchmarkConfig.quick() if a.quick else TrainStepBenchmarkConfig()
     for arg, name in (("rays", "rays"), ("views", "views"), ("large", "large_view"), ("gaussians", "n_gaussians"),
-                      ("n_views", "n_views"), ("steps", "steps"), ("threads", "threads"), ("seed", "seed")):
+                      ("n_views", "n_views"), ("steps", "steps"), ("threads", "threads"), ("seed", "seed"),
+                      ("checkpoint", "checkpoint"), ("scene", "scene"), ("capture", "capture"), ("init", "init")):
         if getattr(a, arg) is not None:
             setattr(cfg, name, getattr(a, arg))
     if a.device:

@@ -25,7 +25,8 @@ import os
 import platform
 import statistics
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 
 import torch
 
@@ -54,8 +55,21 @@ class TrainStepBenchmarkConfig:
     torch_threads: int = 1
     seed: int = 0
     sync_checks: bool = False  # the tracer's checks read back at every trace (the trainer defers them on a GPU)
+    # a real run instead of the random room (bench_checkpoint): its checkpoint, scene, capture and init
+    checkpoint: str | None = None
+    scene: str | None = None
+    capture: str | None = None
+    init: str | None = None
 
     def __post_init__(self) -> None:
+        given = {k: getattr(self, k) for k in ("checkpoint", "scene", "capture", "init")}
+        if any(v is not None for v in given.values()) and any(v is None for v in given.values()):
+            missing = ", ".join(f"--{k}" for k, v in given.items() if v is None)
+            raise ValueError(f"a checkpoint row needs --checkpoint, --scene, --capture and --init together; "
+                             f"missing {missing}")
+        if self.checkpoint is not None and not Path(self.checkpoint).is_file():
+            raise ValueError(f"checkpoint {self.checkpoint} not found (a reconstruct run writes "
+                             "<model>/checkpoints/last.pt)")
         if any(n < 1 for n in self.rays):
             raise ValueError(f"rays must be positive, got {self.rays}")
         for w, h in self.views:
@@ -87,6 +101,48 @@ def bench_row(capture, init, rays_per_step: int, device: str, cfg: TrainStepBenc
     """One row: ``rays_per_step`` random rays (0 = a whole view) per step on ``device``."""
     tracer = Tracer(TracerConfig(num_threads=cfg.threads), device)
     trainer = _trainer(capture, init, rays_per_step, tracer, cfg)
+    cam = capture.views[0].camera
+    return _measure(trainer, tracer, cfg, rays_per_step or cam.width * cam.height,
+                    f"{cam.width}x{cam.height}" if rays_per_step == 0 else None)
+
+
+def bench_checkpoint(reconstruct: dict, capture, init, checkpoint: Path, device: str,
+                     cfg: TrainStepBenchmarkConfig, progress=print) -> dict:
+    """One row: a scene's own Trainer (its merged ``reconstruct`` section, the tracer threads of ``cfg``) resumed from
+    a run's ``checkpoint``: the steps that run takes at that point (its Gaussians, fills, path length, rays), not a
+    random room's. A checkpoint written under another config still loads (its parameters and state are what is
+    timed); the difference is reported."""
+    config = ReconstructConfig.from_dict(reconstruct)
+    config = replace(config, tracer=replace(config.tracer, num_threads=cfg.threads))
+    tracer = Tracer(config.tracer, device)
+    trainer = Trainer(capture, init, config, tracer)
+    state = trainer.read_checkpoint(checkpoint)
+    # the inputs are the caller's to match (the stage records their digests): only the config is compared here
+    trainer.inputs = dict((state.get("fingerprint") or {}).get("inputs", {}))
+    why = trainer.resume_mismatch(state)
+    trainer.load_state_dict(state)
+    step = trainer.step
+    row = _measure(trainer, tracer, cfg, config.rays_per_step, None)
+    row.update(checkpoint=str(checkpoint), step=step,
+               checkpoint_config=None if why is None else why)
+    if why is not None:
+        progress(f"train-step benchmark: note: {checkpoint} {why}")
+    return row
+
+
+def _checkpoint_row(cfg: TrainStepBenchmarkConfig, device: str, progress) -> dict:
+    from models.capture import read_capture
+    from models.gaussians import read_ply
+    from stages.config import load_config
+
+    progress(f"train-step benchmark: {device}: {cfg.scene} resumed from {cfg.checkpoint} ...")
+    reconstruct = load_config(cfg.scene).get("reconstruct", {})
+    return bench_checkpoint(reconstruct, read_capture(Path(cfg.capture)), read_ply(Path(cfg.init)),
+                            Path(cfg.checkpoint), device, cfg, progress)
+
+
+def _measure(trainer: Trainer, tracer: Tracer, cfg: TrainStepBenchmarkConfig, rays: int, whole_view) -> dict:
+    """``cfg.warmup_steps`` untimed steps, ``cfg.steps`` timed whole, ``cfg.steps`` more with section timers."""
     trainer.defer_checks = trainer.defer_checks and not cfg.sync_checks
     sync = device_sync(tracer.device)
     for _ in range(cfg.warmup_steps):
@@ -114,9 +170,7 @@ def bench_row(capture, init, rays_per_step: int, device: str, cfg: TrainStepBenc
     busy = gpu_busy(trainer.train_step, sync) if tracer.device.startswith("cuda") else None
     tracer.close()
     median = lambda key: statistics.median(p.get(key, 0.0) for p in profiled)  # noqa: E731
-    cam = capture.views[0].camera
-    row = {"device": tracer.device, "rays": rays_per_step or cam.width * cam.height,
-           "whole_view": f"{cam.width}x{cam.height}" if rays_per_step == 0 else None,
+    row = {"device": tracer.device, "rays": rays, "whole_view": whole_view,
            "n_gaussians": len(trainer.params["means"]), "deferred_checks": trainer.defer_checks,
            "step_ms": statistics.median(plain),
            "step_ms_min": min(plain), "step_cpu_ms": statistics.median(cpu), "profiled_step_ms": median("total")}
@@ -169,6 +223,10 @@ def run_train_step_benchmark(cfg: TrainStepBenchmarkConfig, progress=print) -> d
         for device in cfg.devices:
             if device.startswith("cuda"):
                 torch.cuda.reset_peak_memory_stats()
+            if cfg.checkpoint is not None:
+                rows.append(_checkpoint_row(cfg, device, progress))
+                memory[device] = peak_memory(device)
+                continue
             renderer = Tracer(TracerConfig(num_threads=cfg.threads), device)
             views = list(cfg.views)
             large = cfg.large_view if cfg.large_view is not None else device.startswith("cuda")
@@ -228,9 +286,12 @@ def format_table(result: dict) -> str:
             for r in result["results"]]
     widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
     line = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
-    lines = [f"ms per training step ({result['config']['n_gaussians']} Gaussians, max path length "
-             f"{result['config']['max_path_length']}; medians of {result['config']['steps']} steps; profiled = with "
-             "section timers and device syncs)", line(head), line(["-" * w for w in widths]), *map(line, body)]
+    c = result["config"]
+    what = (f"{c['scene']} resumed from {c['checkpoint']} at step {result['results'][0]['step']}, "
+            f"{result['results'][0]['n_gaussians']} Gaussians" if c.get("checkpoint") else
+            f"{c['n_gaussians']} Gaussians, max path length {c['max_path_length']}")
+    lines = [f"ms per training step ({what}; medians of {c['steps']} steps; profiled = with section timers and "
+             "device syncs)", line(head), line(["-" * w for w in widths]), *map(line, body)]
     for device, f in result["overhead_floor"].items():
         lines.append(f"overhead floor ({device}, {f['rays']} rays): {f['step_ms']:.1f} ms per step, "
                      f"host {f['host_ms']:.1f} ms")
