@@ -138,6 +138,22 @@ def test_gradients_match_reference_autograd(device, variant):
     _assert_grads_close(gk, gr, seed)
 
 
+@pytest.mark.parametrize("layers", [("diffuse",), ("depth", "transmittance"), ("normal", "roughness"), ("f0",)])
+def test_gradients_with_upstream_on_some_layers_match_reference(layers):
+    """Upstream gradients on only some layers (a diffuse-only loss; the bounce segments): every parameter's
+    gradient is the reference's, exactly zero where no layer reaches it."""
+    seed = fresh_seed()
+    gs, origins, dirs = scene_and_rays(seed, n=200, res=24)
+    cfg = TracerConfig()
+    gk, gr = gs.to().requires_grad_(), gs.to(dtype=torch.float64).requires_grad_()
+    ref, amb = reference_trace(origins, dirs, gr, cfg, return_ambiguous=True, ambiguity_eps=1e-5)
+    w = _weights(ref, amb, torch.Generator().manual_seed(seed))
+    out = Tracer(cfg).trace(origins, dirs, gk)
+    sum((getattr(out, k).double() * w[k]).sum() for k in layers).backward()
+    sum((getattr(ref, k) * w[k]).sum() for k in layers).backward()
+    _assert_grads_close(gk, gr, seed)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_fused_forward_backward_matches_reference(device):
     seed = fresh_seed()
