@@ -32,9 +32,9 @@ class TracerConfig:
                              "ordered: own BVH traversed best-first (ablation)",
                              enum=["interval", "single", "kbuffer", "ordered"])
     window: float = setting(2.5, "interval traversal: first window length, in median Gaussian box diagonals (then "
-                            "sized per ray from the optical depth seen so far); used by rays that enter the Gaussians' box from outside "
-                            "(cameras looking at a cloud or an object); only the cost depends on it "
-                            "(kernels_interval.py)", exclusiveMinimum=0)
+                            "sized per ray from the optical depth seen so far); used by rays that enter the "
+                            "Gaussians' box from outside (cameras looking at a cloud or an object); only the cost "
+                            "depends on it (kernels_interval.py)", exclusiveMinimum=0)
     inside_whole_window: bool = setting(True, "interval traversal: a ray that starts inside the Gaussians' box "
                                         "(a camera or reflection vertex in a room) takes all of itself as its "
                                         "first window (the opaque cut ends it at the first surface) instead of "

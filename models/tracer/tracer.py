@@ -434,11 +434,10 @@ class Tracer:
         allocator pools anyway: always fresh there."""
         if not (reusable and self.is_cpu):
             return ReplayArrays.allocate(n_rays, self.capacity, self.device)
-        spare = self._spare_replay
-        if spare is None or spare.ids.shape != (n_rays, self.capacity):
-            self._spare_replay = spare = None  # (the old one goes before the new one is made)
-            spare = self._spare_replay = ReplayArrays.allocate(n_rays, self.capacity, self.device)
-        return spare
+        if self._spare_replay is None or self._spare_replay.ids.shape != (n_rays, self.capacity):
+            self._spare_replay = None  # the old one goes before the new one is made
+            self._spare_replay = ReplayArrays.allocate(n_rays, self.capacity, self.device)
+        return self._spare_replay
 
     def _grow(self, most: int, n_over: int | None) -> None:
         """A ray needed ``most`` replay slots: at least double the capacity (within max_replay_capacity)."""
