@@ -155,6 +155,11 @@ def test_train_step_times_a_real_run_resumed_from_its_checkpoint(tmp_path, capsy
 
     assert main(["train-step", "--checkpoint", str(ckpt), "--scene", "demo"]) == 1
     assert "missing --capture, --init" in capsys.readouterr().err
+    bad = ["train-step", "--checkpoint", str(ckpt), "--capture", str(tmp_path / "nope"), "--init", str(ckpt)]
+    assert main([*bad, "--scene", "no_such_scene"]) == 1
+    assert "unknown scene 'no_such_scene'" in capsys.readouterr().err
+    assert main([*bad, "--scene", "demo"]) == 1
+    assert f"{tmp_path / 'nope'}: not a capture" in capsys.readouterr().err
 
 def test_gpu_busy_is_the_median_nvml_utilisation_while_steps_repeat(monkeypatch):
     """GPU busy: NVML's utilisation (percent) sampled while the step repeats, the first quarter of the samples

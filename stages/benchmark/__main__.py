@@ -298,7 +298,14 @@ def train_step_main(argv) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    result = run_train_step_benchmark(cfg, progress=lambda m: print(m, file=sys.stderr, flush=True))
+    from models.capture import CaptureError
+    from stages.config import ConfigError
+
+    try:
+        result = run_train_step_benchmark(cfg, progress=lambda m: print(m, file=sys.stderr, flush=True))
+    except (ConfigError, CaptureError, OSError) as e:  # --checkpoint's scene, capture or init
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     print(format_table(result))
     if a.out is not None:
         write_json_atomic(a.out, result)
