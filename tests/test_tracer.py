@@ -415,7 +415,7 @@ def test_octant_trees_change_no_output(kind):
     scene = scene_type(kind, seed)
     for flip in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1), (-1, -1, -1)):
         gs, origins, dirs = _turned(*scene, flip)
-        tracers = [Tracer(TracerConfig(octant_bvh=flag)) for flag in ("always", "never")]
+        tracers = [Tracer(TracerConfig(octant_bvh=flag, wide_bvh=False)) for flag in ("always", "never")]
         outs = [t.trace(origins, dirs, gs) for t in tracers]
         for name in FORWARD + ["hit_count", "blended_count"]:
             assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), f"seed {seed}: {kind} {flip}: {name}"
@@ -426,9 +426,102 @@ def test_octant_trees_change_no_output(kind):
             assert np.array_equal(mlo.numpy(), np.where(s > 0, lo, -hi)), f"octant {k}"
             assert np.array_equal(mhi.numpy(), np.where(s > 0, hi, -lo)), f"octant {k}"
     gs, origins, dirs = scene_type("deep", seed)  # looking along +z
-    cand = [Tracer(TracerConfig(octant_bvh=flag)).trace(origins, dirs, gs).candidates.sum().item()
+    cand = [Tracer(TracerConfig(octant_bvh=flag, wide_bvh=False)).trace(origins, dirs, gs).candidates.sum().item()
             for flag in ("always", "never")]
     assert cand[0] < 0.95 * cand[1], f"seed {seed}: candidates with / without octant trees {cand}"
+
+
+@pytest.mark.parametrize("kind", ["room", "deep", "dense_init", "overlap"])
+def test_wide_tree_changes_no_output(kind):
+    """The 4-wide tree (wide_bvh, the CPU default) changes only the order in which a window's boxes are visited:
+    outputs, counts and gradients are bit for bit those of Warp's binary tree (with and without the octant trees),
+    on every scene type (fresh seeds), turned so that the cameras look into other octants; after a refit (the
+    Gaussians moved) and a rebuild (fewer of them) too."""
+    seed = fresh_seed()
+    scene = scene_type(kind, seed)
+    for flip in ((1, 1, 1), (-1, -1, 1), (1, -1, -1)):
+        gs, origins, dirs = _turned(*scene, flip)
+        tracers = [Tracer(TracerConfig(wide_bvh=True)), Tracer(TracerConfig(wide_bvh=False, octant_bvh="always")),
+                   Tracer(TracerConfig(wide_bvh=False, octant_bvh="never"))]
+        for step in range(3):
+            if step == 1:  # moved: a refit
+                gs = Gaussians(**{**gs.params(), "means": gs.means + 0.01 * torch.randn_like(gs.means)})
+            if step == 2:  # fewer Gaussians: a rebuild
+                gs = Gaussians(**{k: v[: len(gs) * 3 // 4].clone() for k, v in gs.params().items()})
+            outs, grads = [], []
+            for t in tracers:
+                g = gs.to().requires_grad_()
+                out = t.trace(origins, dirs, g)
+                (out.diffuse.square().sum() + out.depth.sum() + out.transmittance.sum()).backward()
+                outs.append(out)
+                grads.append([v.grad for v in g.params().values()])
+            assert tracers[0]._wide and not tracers[1]._wide
+            for out, grad in zip(outs[1:], grads[1:]):
+                for name in FORWARD + ["hit_count", "blended_count"]:
+                    assert torch.equal(getattr(outs[0], name), getattr(out, name)), \
+                        f"seed {seed}: {kind} {flip} step {step}: {name}"
+                for a, b in zip(grads[0], grad):
+                    assert torch.equal(a, b), f"seed {seed}: {kind} {flip} step {step}: gradients"
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_wide_tree_returns_exactly_the_boxes_a_ray_meets(leaf_size):
+    """A wide-tree query (models/tracer/wide_bvh.py) returns each box the ray meets at some t in [0, max_dist)
+    (exit t >= 0) exactly once, and no other: against a brute-force slab test with the same float32 operations,
+    on random boxes and rays (origins inside and outside, finite and unbounded max_dist), nearer boxes first at
+    each node; a tree of several items per leaf (each item tested) too. Its nodes hold four boxes (the binary
+    tree's nodes), its leaves every item once."""
+    from models.tracer.wide_bvh import WideBvh, WideTree, wide_next, wide_start
+
+    @wp.kernel
+    def collect(wb: WideBvh, origins: wp.array(dtype=wp.vec3), invs: wp.array(dtype=wp.vec3),
+                max_dists: wp.array(dtype=float), found: wp.array2d(dtype=wp.int32), counts: wp.array(dtype=wp.int32)):
+        r = wp.tid()
+        wide_start(wb)
+        n = int(0)
+        gid = wide_next(wb, origins[r], invs[r], max_dists[r])
+        while gid >= 0:
+            if n < found.shape[1]:
+                found[r, n] = gid
+            n += 1
+            gid = wide_next(wb, origins[r], invs[r], max_dists[r])
+        counts[r] = n
+
+    rng = np.random.default_rng(fresh_seed())
+    n = 3000
+    centre = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+    half = rng.uniform(0.005, 0.15, (n, 3)).astype(np.float32)
+    lo, hi = wp.array(centre - half, dtype=wp.vec3), wp.array(centre + half, dtype=wp.vec3)
+    bvh = wp.Bvh(lo, hi, leaf_size=leaf_size)
+    tree = WideTree("cpu")
+    tree.refresh(bvh, lo, hi, n, threads=1)
+    child = tree.child.numpy()
+    leaves = child[(child < 0) & (child != -2**31)]
+    v = -(leaves.astype(np.int64) + 1)
+    items = np.concatenate([tree.prims.numpy()[s:s + c] for s, c in zip(v >> 4, v & 15)])
+    assert np.array_equal(np.sort(items), np.arange(n)), "every item in exactly one leaf"
+    assert (child[:4] != -2**31).sum() >= 2 and tree.nodes < n
+    rays = 400
+    o = np.concatenate([rng.uniform(-1, 1, (rays // 2, 3)), rng.normal(size=(rays // 2, 3)) * 3]).astype(np.float32)
+    d = rng.normal(size=(rays, 3)).astype(np.float32)
+    d[:20, 0] = 0.0  # parallel to a slab
+    inv = np.where(np.abs(d) < 1e-30, np.where(d < 0, -1e30, 1e30), 1 / np.where(d == 0, 1, d)).astype(np.float32)
+    md = np.where(np.arange(rays) % 2 == 0, 1e30, rng.uniform(0.1, 3, rays)).astype(np.float32)
+    found = wp.full((rays, 256), -1, dtype=wp.int32)
+    counts = wp.zeros(rays, dtype=wp.int32)
+    wp.launch(collect, dim=rays, inputs=[tree.structs[0], wp.array(o, dtype=wp.vec3), wp.array(inv, dtype=wp.vec3),
+                                         wp.array(md), found, counts])
+    found, counts = found.numpy(), counts.numpy()
+    clo, chi = centre - half, centre + half
+    for r in range(rays):
+        ta, tb = (clo - o[r]) * inv[r], (chi - o[r]) * inv[r]
+        t0 = np.minimum(ta, tb).max(axis=1)
+        t1 = np.maximum(ta, tb).min(axis=1)
+        want = np.flatnonzero((t1 >= 0) & (t1 >= t0) & (t0 < md[r]))
+        assert counts[r] <= 256
+        got = found[r, :counts[r]]
+        assert len(got) == len(set(got.tolist())), f"ray {r}: a box returned twice"
+        assert np.array_equal(np.sort(got), want), f"ray {r}: {len(got)} boxes, brute force {len(want)}"
 
 
 def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypatch):
@@ -439,7 +532,8 @@ def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypa
 
     monkeypatch.setattr(tracer_module, "OCTANT_RAYS", 300)
     gs, origins, dirs = scene_type("deep", fresh_seed())  # 144 rays per trace
-    tracer, plain = Tracer(TracerConfig(octant_bvh="auto")), Tracer(TracerConfig(octant_bvh="never"))
+    tracer = Tracer(TracerConfig(octant_bvh="auto", wide_bvh=False))
+    plain = Tracer(TracerConfig(octant_bvh="never", wide_bvh=False))
     first = tracer.trace(origins, dirs, gs)
     assert not tracer.bvh.mirrored and not tracer._octants
     tracer.trace(origins, dirs, gs)

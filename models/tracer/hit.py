@@ -38,8 +38,9 @@ def kernel_response(r2: float, p: int) -> float:
 
 @wp.func
 def eval_hit(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: float, s: float,
-             p: int, alpha_min: float, alpha_max: float, t_min: float, obb_test: int) -> wp.vec3:
-    """(t, alpha, in_ellipsoid); alpha = 0 when the hit is rejected.
+             p: int, alpha_min: float, alpha_max: float, t_min: float, obb_test: int):
+    """(t, alpha, in_ellipsoid) as three floats (a tuple, not a vec3: the callers read them as scalars; a vec3
+    read back after scalar stores stalled store-to-load forwarding once per candidate); alpha = 0 when rejected.
 
     The ray meets the cut-off ellipsoid (|x_l| <= s: alpha > alpha_min there and only there) when its local
     closest point q has |q| <= s; that test comes first and costs no more than a box test (``obb_test`` 0 is the
@@ -48,35 +49,36 @@ def eval_hit(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: floa
     equivalent alpha > alpha_min.
     """
     if s <= 0.0:
-        return wp.vec3(0.0, 0.0, 0.0)
+        return 0.0, 0.0, 0.0
     o_l = w2l * (o - mean)
     d_l = w2l * d
     dd = wp.dot(d_l, d_l)
     if dd <= 0.0:
-        return wp.vec3(0.0, 0.0, 0.0)
+        return 0.0, 0.0, 0.0
     q = closest_point(o_l, d_l, dd)
     r2 = wp.dot(q, q)
     if obb_test != 0:
         if r2 > s * s:
-            return wp.vec3(0.0, 0.0, 0.0)
+            return 0.0, 0.0, 0.0
     t = -wp.dot(o_l, d_l) / dd
     if t <= t_min:
-        return wp.vec3(t, 0.0, 1.0)
+        return t, 0.0, 1.0
     if r2 > s * s:
-        return wp.vec3(t, 0.0, 1.0)
+        return t, 0.0, 1.0
     alpha = wp.min(alpha_max, opacity * kernel_response(r2, p))
     if alpha <= alpha_min:
-        return wp.vec3(t, 0.0, 1.0)
-    return wp.vec3(t, alpha, 1.0)
+        return t, 0.0, 1.0
+    return t, alpha, 1.0
 
 
 @wp.func
 def eval_packed(o: wp.vec3, d: wp.vec3, rec: vec16, p: int, alpha_min: float, alpha_max: float,
-                t_min: float, obb_test: int) -> wp.vec3:
+                t_min: float, obb_test: int):
     """eval_hit on a packed record (see structs.vec16)."""
     mean = wp.vec3(rec[0], rec[1], rec[2])
     w2l = wp.mat33(rec[3], rec[4], rec[5], rec[6], rec[7], rec[8], rec[9], rec[10], rec[11])
-    return eval_hit(o, d, mean, w2l, rec[12], rec[13], p, alpha_min, alpha_max, t_min, obb_test)
+    t, alpha, inside = eval_hit(o, d, mean, w2l, rec[12], rec[13], p, alpha_min, alpha_max, t_min, obb_test)
+    return t, alpha, inside
 
 
 @wp.func

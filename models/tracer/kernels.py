@@ -17,6 +17,7 @@ from models.tracer.kernels_kbuffer import forward_kbuffer
 from models.tracer.kernels_ordered import forward_ordered
 from models.tracer.kernels_single import forward_single
 from models.tracer.ordered_bvh import OrderedBvh
+from models.tracer.wide_bvh import WideBvh
 from models.tracer.structs import (
     GaussianData,
     GaussianGrads,
@@ -30,9 +31,9 @@ from models.tracer.structs import (
 
 @wp.func
 def forward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
-                outs: RayOutputs, ob: OrderedBvh) -> int:
+                outs: RayOutputs, ob: OrderedBvh, wb: WideBvh) -> int:
     if prm.traversal == 0:
-        return forward_interval(ray, o, d, g, prm, rep, outs)
+        return forward_interval(ray, o, d, g, prm, rep, outs, wb)
     if prm.traversal == 3:
         status = forward_ordered(ray, o, d, g, prm, rep, outs, ob)
         if status >= 0:
@@ -45,9 +46,9 @@ def forward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePar
 
 @wp.kernel
 def forward_kernel(origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), g: GaussianData,
-                   prm: TraceParams, rep: Replay, outs: RayOutputs, ob: OrderedBvh, offset: int):
+                   prm: TraceParams, rep: Replay, outs: RayOutputs, ob: OrderedBvh, wb: WideBvh, offset: int):
     ray = wp.tid() + offset  # a launch covers rays offset .. offset + dim - 1 of the whole arrays
-    forward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, ob)
+    forward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, ob, wb)
 
 
 @wp.kernel
@@ -74,10 +75,10 @@ def l1_term(out: float, target: float, scale: float) -> wp.vec2:
 def fused_kernel(origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), g: GaussianData,
                  prm: TraceParams, rep: Replay, outs: RayOutputs, targets: RayGrads, loss: L1Loss,
                  up: RayGrads, ray_loss: wp.array(dtype=float), grads: GaussianGrads, ob: OrderedBvh,
-                 offset: int):
+                 wb: WideBvh, offset: int):
     """Forward, L1 loss gradient into `up` (per ray) and backward, in one thread per ray."""
     ray = wp.tid() + offset
-    ok = forward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, ob)
+    ok = forward_ray(ray, origins[ray], dirs[ray], g, prm, rep, outs, ob, wb)
     if ok == 0:
         return
     total = float(0.0)

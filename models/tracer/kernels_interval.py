@@ -38,7 +38,9 @@ coordinates first), nearer first only for rays going down the split axis. With t
 octant, built over the bounds mirrored so that the ray goes down every axis (``octant_query``; models/tracer/bvh.py):
 the hits stored first are the near ones, so a window turns opaque, and its cut shrinks the query, after fewer boxes
 (benchmark (b) 3.51 -> 2.79 candidates per blended hit, (d) at 48x48 rays 70.5 -> 21.3). The boxes visited and
-every t are those of the plain tree.
+every t are those of the plain tree. On a CPU the wide tree (``TracerConfig.wide_bvh``, ``TraceParams.wide``;
+models/tracer/wide_bvh.py) answers the window queries instead of both: four child boxes per SIMD test, the nearer
+children first in any direction; the same boxes again (forward -20 % on benchmark (b), (a) and (c)).
 
 Opaque windows: once the hits stored in a window take T below the threshold (their product, in any order),
 the window is the ray's last. Its hits are sorted once and cut after the hit where T crosses the threshold plus
@@ -63,6 +65,7 @@ from models.tracer.blend import blend_slot, blend_start, write_outputs
 from models.tracer.hit import eval_packed, hit_less
 from models.tracer.kernels_ordered import safe_inv
 from models.tracer.structs import GaussianData, RayOutputs, Replay, TraceParams
+from models.tracer.wide_bvh import WideBvh, wide_next, wide_start
 
 ID_MAX = wp.constant(2147483647)
 FAR = wp.constant(3.0e38)
@@ -82,6 +85,15 @@ def slab(o: wp.vec3, inv: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
     t0 = wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
     t1 = wp.min(wp.min(wp.max(ta[0], tb[0]), wp.max(ta[1], tb[1])), wp.max(ta[2], tb[2]))
     return wp.vec2(t0, t1)
+
+
+@wp.func
+def slab_entry(o: wp.vec3, inv: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
+    """The entry t of ``slab`` alone, as a scalar: the same operations (a vec2 read back from memory after two
+    scalar stores stalled the store-to-load forwarding once per candidate: ~4 % of benchmark (b)'s forward)."""
+    ta = wp.cw_mul(lo - o, inv)
+    tb = wp.cw_mul(hi - o, inv)
+    return wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
 
 
 @wp.func
@@ -198,17 +210,18 @@ def probe_beyond(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePa
     inside = int(0)
     while found == 0 and wp.bvh_query_next(query, gid, 1.0e30):
         cand += 1
-        h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
-        if h[2] > 0.0:
+        h_t, h_a, h_in = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min,
+                                     prm.alpha_max, prm.t_min, prm.obb_test)
+        if h_in > 0.0:
             inside += 1
-        if h[1] > 0.0 and later(h[0], gid, t_lo, id_lo) != 0:
+        if h_a > 0.0 and later(h_t, gid, t_lo, id_lo) != 0:
             found = 1
     return wp.vec3(float(found), float(cand), float(inside))
 
 
 @wp.func
 def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TraceParams, rep: Replay,
-                     outs: RayOutputs) -> int:
+                     outs: RayOutputs, wb: WideBvh) -> int:
     """Windows of t front to back. Returns 0 when the blended prefix outgrows the replay buffer."""
     acc = blend_start()
     n_acc = int(0)
@@ -285,30 +298,44 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             next_skip_ok = 0
             m, last, d_t, d_id, max_dist = cut_opaque(rep, ray, base, m, acc.trans, prm.trans_threshold, shift, d_t,
                                                       d_id, max_dist, last)
-        query = octant_query(prm, o + shift * d, d)
+        o_q = o + shift * d
+        query = octant_query(prm, o_q, d)  # (not read when the wide tree answers)
+        if prm.wide != 0:
+            wide_start(wb)
 
         gid = int(0)
-        while wp.bvh_query_next(query, gid, max_dist):
-            entry = slab(o, inv, prm.lowers[gid], prm.uppers[gid])[0]
+        gq = int(0)
+        more = int(1)
+        while more != 0:
+            if prm.wide != 0:
+                gid = wide_next(wb, o_q, inv, max_dist)
+            elif wp.bvh_query_next(query, gq, max_dist):
+                gid = gq
+            else:
+                gid = -1
+            if gid < 0:
+                more = 0
+                continue
+            entry = slab_entry(o, inv, prm.lowers[gid], prm.uppers[gid])
             if (last != 0 or entry < entered) and (skip_ok == 0 or entry >= examined):
                 cand += 1
-                h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min,
-                                prm.obb_test)
-                if h[2] > 0.0:
+                h_t, h_a, h_in = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max,
+                                             prm.t_min, prm.obb_test)
+                if h_in > 0.0:
                     obb += 1
-                if h[1] > 0.0:
-                    if later(h[0], gid, t_lo, id_lo) != 0:
-                        if later(h[0], gid, d_t, d_id) == 0:  # in this window
+                if h_a > 0.0:
+                    if later(h_t, gid, t_lo, id_lo) != 0:
+                        if later(h_t, gid, d_t, d_id) == 0:  # in this window
                             if m + carried >= room and carried > 0:
                                 carried = 0  # make room: the next window re-examines what they came from
                                 next_skip_ok = 0
                             if opaque != 0:
                                 # the ray ends in this window: keep its sorted hits up to the cut + the tail witness
                                 if m < room:
-                                    insert_sorted(rep, ray, base, m, h[0], gid, h[1])
+                                    insert_sorted(rep, ray, base, m, h_t, gid, h_a)
                                     m += 1
                                 else:
-                                    insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
+                                    insert_sorted(rep, ray, base, m - 1, h_t, gid, h_a)  # drops the farthest
                                     # the window now ends at the farthest kept hit: were the crossing hit the last
                                     # slot, the dropped one (the tail witness) lies beyond the window's end and the
                                     # probe finds it (seen: seed 2110809220 at replay_capacity 3)
@@ -318,9 +345,9 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                                                           prm.trans_threshold, shift, d_t, d_id,
                                                                           max_dist, last)
                             elif m < room:
-                                store(rep, ray, base + m, h[0], gid, h[1])
+                                store(rep, ray, base + m, h_t, gid, h_a)
                                 m += 1
-                                w_trans = w_trans * (1.0 - h[1])
+                                w_trans = w_trans * (1.0 - h_a)
                                 if m == room and full == 0:
                                     # full: sort once, then keep the nearest hits and shrink the window to them
                                     sort_slots(rep, ray, base, m)
@@ -340,11 +367,11 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
                                                                               prm.trans_threshold, shift, d_t, d_id,
                                                                               max_dist, last)
                             else:
-                                insert_sorted(rep, ray, base, m - 1, h[0], gid, h[1])  # drops the farthest
+                                insert_sorted(rep, ray, base, m - 1, h_t, gid, h_a)  # drops the farthest
                                 d_t, d_id, max_dist = window_to(rep, ray, base + m - 1, shift)
                         elif full == 0 and m + carried < room:
                             carried += 1  # a later window's hit: carried there
-                            store(rep, ray, cap - carried, h[0], gid, h[1])
+                            store(rep, ray, cap - carried, h_t, gid, h_a)
                         else:
                             next_skip_ok = 0  # not kept: the next window re-examines its box
         if full == 0:

@@ -34,20 +34,21 @@ def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
         query = wp.bvh_query_ray(prm.bvh, o, d)
         gid = int(0)
         while wp.bvh_query_next(query, gid):
-            h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
+            h_t, h_a, h_in = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min,
+                                         prm.alpha_max, prm.t_min, prm.obb_test)
             if first != 0:
                 cand += 1
-                if h[2] > 0.0:
+                if h_in > 0.0:
                     obb += 1
-                if h[1] > 0.0:
+                if h_a > 0.0:
                     n_acc += 1
             # (Warp evaluates both operands of `and`/`or`: nest the ifs to keep reads in bounds)
-            if h[1] > 0.0:
-                if hit_less(last_t, last_id, h[0], gid) != 0:
+            if h_a > 0.0:
+                if hit_less(last_t, last_id, h_t, gid) != 0:
                     insert = int(0)
                     if m < prm.k:
                         insert = 1
-                    elif hit_less(h[0], gid, rep.t[ray, base + m - 1], rep.ids[ray, base + m - 1]) != 0:
+                    elif hit_less(h_t, gid, rep.t[ray, base + m - 1], rep.ids[ray, base + m - 1]) != 0:
                         insert = 1
                     if insert != 0:
                         if m < prm.k:
@@ -57,15 +58,15 @@ def forward_kbuffer(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                         while shifting != 0:
                             shifting = 0
                             if j > 0:
-                                if hit_less(h[0], gid, rep.t[ray, base + j - 1], rep.ids[ray, base + j - 1]) != 0:
+                                if hit_less(h_t, gid, rep.t[ray, base + j - 1], rep.ids[ray, base + j - 1]) != 0:
                                     rep.t[ray, base + j] = rep.t[ray, base + j - 1]
                                     rep.ids[ray, base + j] = rep.ids[ray, base + j - 1]
                                     rep.alpha[ray, base + j] = rep.alpha[ray, base + j - 1]
                                     j -= 1
                                     shifting = 1
-                        rep.t[ray, base + j] = h[0]
+                        rep.t[ray, base + j] = h_t
                         rep.ids[ray, base + j] = gid
-                        rep.alpha[ray, base + j] = h[1]
+                        rep.alpha[ray, base + j] = h_a
         first = 0
         if m < prm.k:
             done = 1

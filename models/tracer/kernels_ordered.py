@@ -135,25 +135,25 @@ def forward_ordered(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Trac
                     # the leaf's records are contiguous (Morton order): no gather by Gaussian id
                     if box_entry(o, inv_d, ob.sorted_lowers[k], ob.sorted_uppers[k], prm.t_min) < 1.0e29:
                         cand += 1
-                        h = eval_packed(o, d, ob.sorted_packed[k], prm.kernel_p, prm.alpha_min, prm.alpha_max,
-                                        prm.t_min, prm.obb_test)
-                        if h[2] > 0.0:
+                        h_t, h_a, h_in = eval_packed(o, d, ob.sorted_packed[k], prm.kernel_p, prm.alpha_min,
+                                                     prm.alpha_max, prm.t_min, prm.obb_test)
+                        if h_in > 0.0:
                             obb += 1
-                        if h[1] > 0.0:
+                        if h_a > 0.0:
                             if n >= prm.capacity:
                                 outs.needed[ray] = 2 * prm.capacity
                                 return 0
                             # insert into the pending hits [blended, n), kept sorted (hits arrive nearly in order)
                             gid = ob.order[k]
                             j = n
-                            while j > acc.blended and hit_less(h[0], gid, rep.t[ray, j - 1], rep.ids[ray, j - 1]) != 0:
+                            while j > acc.blended and hit_less(h_t, gid, rep.t[ray, j - 1], rep.ids[ray, j - 1]) != 0:
                                 rep.ids[ray, j] = rep.ids[ray, j - 1]
                                 rep.t[ray, j] = rep.t[ray, j - 1]
                                 rep.alpha[ray, j] = rep.alpha[ray, j - 1]
                                 j -= 1
                             rep.ids[ray, j] = gid
-                            rep.t[ray, j] = h[0]
-                            rep.alpha[ray, j] = h[1]
+                            rep.t[ray, j] = h_t
+                            rep.alpha[ray, j] = h_a
                             n += 1
         else:
             left = 2 * node + 1

@@ -22,14 +22,15 @@ def collect_hits(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePa
     obb = int(0)
     while wp.bvh_query_next(query, gid):
         cand += 1
-        h = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max, prm.t_min, prm.obb_test)
-        if h[2] > 0.0:
+        h_t, h_a, h_in = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min,
+                                     prm.alpha_max, prm.t_min, prm.obb_test)
+        if h_in > 0.0:
             obb += 1
-        if h[1] > 0.0:
+        if h_a > 0.0:
             if n < prm.capacity:
                 rep.ids[ray, n] = gid
-                rep.t[ray, n] = h[0]
-                rep.alpha[ray, n] = h[1]
+                rep.t[ray, n] = h_t
+                rep.alpha[ray, n] = h_a
             n += 1
     outs.candidates[ray] = cand
     outs.obb_candidates[ray] = obb

@@ -26,6 +26,7 @@ class TraceParams:
     bvh: wp.uint64            # wp.Bvh id over the Gaussians' world bounds
     octant_bvh: wp.array(dtype=wp.uint64)  # interval: [8] tree per octant of ray directions (bvh.py)
     octants: int              # 1: the interval traversal queries the octant trees (mirrored rays)
+    wide: int                 # 1: the interval traversal queries the wide tree (wide_bvh.py; CPU)
     kernel_p: int             # response exp(-r^(2p) / (2p))
     alpha_min: float
     alpha_max: float

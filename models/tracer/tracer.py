@@ -45,6 +45,7 @@ from models.tracer.launch import (
 from models.tracer.ordered_bvh import OrderedBvh, OrderedBvhBuilder
 from models.tracer.output import LAYERS, TraceOutput
 from models.tracer.structs import GaussianData, L1Loss, TraceParams
+from models.tracer.wide_bvh import WideTree, empty_wide
 
 log = logging.getLogger(__name__)
 # rays traced since the last update() from which auto octant trees pay for their refits (Tracer._octants_for)
@@ -93,6 +94,9 @@ class Tracer:
         self._no_octants = wp.zeros(1, dtype=wp.uint64, device=self.device)
         self._rays_since_update = 0  # rays traced since the last update() (the octant trees' amortisation)
         self._octants = False        # this launch queries the octant trees (_octants_for)
+        self._wide = False           # this launch queries the wide tree (_wide_for)
+        self._wide_tree = WideTree(self.device)
+        self._no_wide = empty_wide(self.device)
         self.capacity = self.config.replay_capacity
         self.scene_box = self.core_box = (wp.vec3(0.0), wp.vec3(0.0))
         self.scene_box_values = (0.0,) * 12  # the scene and core boxes as floats (part of the launch parameters' key)
@@ -152,6 +156,7 @@ class Tracer:
                     self.ordered.rebuild(self.bvh.lowers, self.bvh.uppers, self.bvh.packed)
                 else:
                     self.ordered.refit(self.bvh.packed)
+        self._wide_tree.current = False  # refitted (or collapsed) when a trace needs it (_wide_for)
         self._rays_since_update = 0
         with self.timer.section("tracer_host"):
             self._scene_key = key
@@ -278,10 +283,10 @@ class Tracer:
         tv, uv = ray_grads_struct(tgt), ray_grads_view(up, 0, n_rays)
         views = LaunchViews(n_rays, lambda: self._ordered_struct(0, n_rays))
 
-        def launch(prm, rep, outs, a, b, grads):
+        def launch(prm, rep, outs, a, b, grads, wb):
             rv, ov, ob = views.of(rep, outs)
             wp.launch(kernels.fused_kernel, dim=b - a, device=self.device,
-                      inputs=[o, d, gdata, prm, rv, ov, tv, loss_prm, uv, ray_loss, grads, ob, a])
+                      inputs=[o, d, gdata, prm, rv, ov, tv, loss_prm, uv, ray_loss, grads, ob, wb, a])
 
         outs, rep, grads = self._run(n_rays, len(gaussians), gdata, launch, with_grads=True)
         out = self._outputs_to_torch(outs, gaussians)
@@ -315,12 +320,13 @@ class Tracer:
         c = self.config
         key = (gid, self.capacity, self.box_diagonal, self.scene_box_values, id(self.bvh.lowers), id(self.bvh.uppers),
                c.kernel_p, c.alpha_min, c.alpha_max, c.transmittance_threshold, c.t_min, c.k, c.world_aabb_only,
-               c.traversal, c.window, c.inside_whole_window, self._octants, id(self.bvh.octant_ids))
+               c.traversal, c.window, c.inside_whole_window, self._octants, id(self.bvh.octant_ids), self._wide)
         if key == self._prm_key:
             return self._prm
         prm = TraceParams()
         prm.bvh = wp.uint64(gid)
         prm.octants = 1 if self._octants else 0
+        prm.wide = 1 if self._wide else 0
         prm.octant_bvh = self.bvh.octant_ids if self._octants else self._no_octants
         prm.kernel_p = c.kernel_p
         prm.alpha_min = c.alpha_min
@@ -339,13 +345,27 @@ class Tracer:
         self._prm, self._prm_key = prm, key
         return prm
 
+    def _wide_for(self) -> bool:
+        """Whether this launch queries the wide tree (wide_bvh.py), refreshing it if so: the interval traversal on a
+        CPU with ``wide_bvh`` on."""
+        if not (self.is_cpu and self.config.wide_bvh and self.config.traversal == "interval" and self.bvh.count > 0):
+            return False
+        with self.timer.section("tracer_host"), self.timer.section("bvh_update"):
+            self._wide_tree.refresh(self.bvh.bvh, self.bvh.lowers, self.bvh.uppers, self.bvh.count, self._threads,
+                                    run=lambda jobs: run_chunks(self._pool, jobs))
+        return True
+
+    def _wide_struct(self, i: int):
+        """Launch thread i's wide tree (its own stack), or the placeholder."""
+        return self._wide_tree.structs[i] if self._wide else self._no_wide
+
     def _octants_for(self, n_rays: int) -> bool:
         """Whether this launch of ``n_rays`` queries the octant trees (bvh.py), refreshing them if so. auto: once
         the rays traced since the last update() reach OCTANT_RAYS, about what seven refits cost in rays traced
         (50k Gaussians, 2 CPU cores: ~17 ms against ~4.6 us per ray), or when they are current anyway."""
         mode = self.config.octant_bvh
         self._rays_since_update += n_rays
-        if self.config.traversal != "interval" or mode == "never" or self.bvh.count <= 0:
+        if self.config.traversal != "interval" or mode == "never" or self.bvh.count <= 0 or self._wide:
             return False
         if mode == "auto" and not self.bvh.octants_current and self._rays_since_update < OCTANT_RAYS:
             return False
@@ -402,6 +422,7 @@ class Tracer:
             h = self.config.ordered_heap_size
             self._heap = (wp.empty((n_rays, h), dtype=float, device=self.device),
                           wp.empty((n_rays, h), dtype=wp.int32, device=self.device))
+        self._wide = self._wide_for()
         self._octants = self._octants_for(n_rays)
         while True:
             rep = self._replay(n_rays, reusable=with_grads or not self._keep_replay)
@@ -410,8 +431,8 @@ class Tracer:
                 outs["transmittance"].fill_(1.0)
                 break
             prm = self._params(self.bvh.id)
-            jobs = [(lambda i=i, chunks=chunks: [launch(prm, rep, outs, a, b, grads[i] if grads else None)
-                                                 for a, b in chunks])
+            jobs = [(lambda i=i, chunks=chunks: [launch(prm, rep, outs, a, b, grads[i] if grads else None,
+                                                        self._wide_struct(i)) for a, b in chunks])
                     for i, chunks in enumerate(stripes)]
             with self.timer.section("tracer_forward"):
                 run_chunks(self._pool, jobs)
@@ -458,9 +479,10 @@ class Tracer:
 
         views = LaunchViews(n_rays, lambda: self._ordered_struct(0, n_rays))
 
-        def launch(prm, rep, outs, a, b, _grads):
+        def launch(prm, rep, outs, a, b, _grads, wb):
             rv, ov, ob = views.of(rep, outs)
-            wp.launch(kernels.forward_kernel, dim=b - a, device=self.device, inputs=[o, d, gdata, prm, rv, ov, ob, a])
+            wp.launch(kernels.forward_kernel, dim=b - a, device=self.device,
+                      inputs=[o, d, gdata, prm, rv, ov, ob, wb, a])
 
         outs, rep, _ = self._run(n_rays, inputs[0].shape[0], gdata, launch, with_grads=False)
         return {"o": o, "d": d, "gdata": gdata, "outs": outs, "rep": rep, "capacity": self.capacity}
