@@ -433,7 +433,7 @@ def test_octant_trees_change_no_output(kind):
 
 @pytest.mark.parametrize("kind", ["room", "deep", "dense_init", "overlap"])
 def test_wide_tree_changes_no_output(kind):
-    """The 4-wide tree (wide_bvh, the CPU default) changes only the order in which a window's boxes are visited:
+    """The 8-wide tree (wide_bvh, the CPU default) changes only the order in which a window's boxes are visited:
     outputs, counts and gradients are bit for bit those of Warp's binary tree (with and without the octant trees),
     on every scene type (fresh seeds), turned so that the cameras look into other octants; after a refit (the
     Gaussians moved) and a rebuild (fewer of them) too."""
@@ -469,7 +469,7 @@ def test_wide_tree_returns_exactly_the_boxes_a_ray_meets(leaf_size):
     """A wide-tree query (models/tracer/wide_bvh.py) returns each box the ray meets at some t in [0, max_dist)
     (exit t >= 0) exactly once, and no other: against a brute-force slab test with the same float32 operations,
     on random boxes and rays (origins inside and outside, finite and unbounded max_dist), nearer boxes first at
-    each node; a tree of several items per leaf (each item tested) too. Its nodes hold four boxes (the binary
+    each node; a tree of several items per leaf (each item tested) too. Its nodes hold up to eight boxes (the binary
     tree's nodes), its leaves every item once."""
     from models.tracer.wide_bvh import WideBvh, WideTree, wide_next, wide_start
 

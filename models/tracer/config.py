@@ -46,7 +46,7 @@ class TracerConfig:
                               "a tree has traced enough rays since its last update to pay for them (renders, "
                               "whole-view GPU steps; not the CPU's 4096-ray training steps), always, never",
                               enum=list(OCTANT_MODES), runtime=True)
-    wide_bvh: bool = setting(True, "interval traversal on a CPU: query a 4-wide tree collapsed from the BVH (four "
+    wide_bvh: bool = setting(True, "interval traversal on a CPU: query an 8-wide tree collapsed from the BVH (eight "
                              "child boxes per SIMD test, nearer children first; models/tracer/wide_bvh.py) instead of "
                              "Warp's binary tree and its octant trees; the hits and their order do not depend on it. "
                              "A CUDA device always uses Warp's", runtime=True)

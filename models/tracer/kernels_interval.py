@@ -39,8 +39,8 @@ octant, built over the bounds mirrored so that the ray goes down every axis (``o
 the hits stored first are the near ones, so a window turns opaque, and its cut shrinks the query, after fewer boxes
 (benchmark (b) 3.51 -> 2.79 candidates per blended hit, (d) at 48x48 rays 70.5 -> 21.3). The boxes visited and
 every t are those of the plain tree. On a CPU the wide tree (``TracerConfig.wide_bvh``, ``TraceParams.wide``;
-models/tracer/wide_bvh.py) answers the window queries instead of both: four child boxes per SIMD test, the nearer
-children first in any direction; the same boxes again (forward -20 % on benchmark (b), (a) and (c)).
+models/tracer/wide_bvh.py) answers the window queries instead of both: eight child boxes per SIMD test, the nearer
+children first in any direction; the same boxes again (forward -23..-28 % on benchmark (a), (b), (c), one CPU thread).
 
 Opaque windows: once the hits stored in a window take T below the threshold (their product, in any order),
 the window is the ray's last. Its hits are sorted once and cut after the hit where T crosses the threshold plus

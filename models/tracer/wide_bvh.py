@@ -1,24 +1,26 @@
-"""A 4-wide BVH for the CPU interval traversal: four child boxes tested at once, nearer children first.
+"""An 8-wide BVH for the CPU interval traversal: eight child boxes tested at once, nearer children first.
 
 Profiled on benchmark (b) (one CPU thread), about half of the forward kernel was Warp's ``bvh_query_next`` node
 loop: a binary tree whose children are pushed untested and each tested, one scalar slab test and one hard-to-predict
 branch per popped node. This tree is Warp's own (its SAH build, its refit), collapsed: each node of the wide tree
 takes the binary tree's node and replaces its largest-area internal child by that child's two children until it
-holds four (``collapse``, once per build), and a refit copies the binary nodes' refitted boxes into the wide nodes'
-slots (``refit_wide_kernel``, every update). A node stores its four child boxes as six planes of four floats
-(lo x, lo y, lo z, hi x, hi y, hi z), so one node is one SIMD slab test of four boxes (``wide_next``: clang vector
+holds eight (``collapse``, once per build), and a refit copies the binary nodes' refitted boxes into the wide nodes'
+slots (``refit_wide_kernel``, every update). A node stores its eight child boxes as six planes of eight floats
+(lo x, lo y, lo z, hi x, hi y, hi z), so one node is one SIMD slab test of eight boxes (``wide_next``: clang vector
 extensions in a native snippet); the children hit within ``max_dist`` are pushed farthest first, so the nearest is
 visited next (what the octant trees do for the binary tree, without seven more trees to refit), each with its entry
 t, and a popped entry whose box starts beyond the (possibly shrunk) ``max_dist`` is dropped. "Nearest" is the
 midpoint of the box's stretch of the ray (max(entry, 0) + exit), where its hits lie, not its entry: the boxes that
-hold the window's start all enter before it (benchmark (b): 36.2 -> 35.0 candidates per ray; the octant trees 34.8).
+hold the window's start all enter before it (benchmark (b), 4 wide: 36.2 -> 35.0 candidates per ray; the octant
+trees 34.8). Eight wide rather than four (AVX: one 8-lane test; without it two 4-lane ones): one CPU thread, best
+of 7, wide / Warp's tree: (b) 0.78 -> 0.72, (a) 0.81 -> 0.77, (c) 0.81 -> 0.74.
 
 A query returns exactly the boxes the ray (origin, 1 / direction) meets at some t in [0, max_dist) with exit t >= 0:
 the test of Warp's ray query, so the interval traversal sees the same set of candidates, in another order, and its
 outputs (the hits blended and their order) do not depend on it. CPU only (``TracerConfig.wide_bvh``): the snippet
 compiles to a stub on CUDA, where Warp's traversal runs. The stack is per launch thread (``WideBvh.stack`` of the
 struct that thread's launches get): a CPU launch runs its rays one after the other, so one stack of depth
-3 x (tree depth) + 1 serves them all and stays in the first-level cache.
+7 x (tree depth) + 1 serves them all and stays in the first-level cache.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ LEAF_BITS = 4        # a leaf slot encodes -(start << 4 | count) - 1 into the pr
 
 @wp.struct
 class WideBvh:
-    box: wp.array(dtype=float)        # [M * 24]: node m's child boxes, planes lo x, lo y, lo z, hi x, hi y, hi z
-    child: wp.array(dtype=wp.int32)   # [M * 4]: >= 0 a wide node; EMPTY; else a leaf (LEAF_BITS)
+    box: wp.array(dtype=float)        # [M * 48]: node m's child boxes, planes lo x, lo y, lo z, hi x, hi y, hi z
+    child: wp.array(dtype=wp.int32)   # [M * 8]: >= 0 a wide node; EMPTY; else a leaf (LEAF_BITS)
     prims: wp.array(dtype=wp.int32)   # [N]: the binary tree's primitive order (leaves index into it)
     lowers: wp.array(dtype=wp.vec3)   # [N] the Gaussians' world bounds (a leaf of several is tested per item)
     uppers: wp.array(dtype=wp.vec3)
@@ -59,11 +61,11 @@ int bad = 0;
 q[0] = root;
 dep[0] = 1;
 for (int w = 0; w < nw; ++w) {
-    int c[4];
+    int c[8];
     int nc = 0;
     int b = q[w];
     if (L[b].b) { c[0] = b; nc = 1; } else { c[0] = L[b].i; c[1] = U[b].i; nc = 2; }
-    while (nc < 4) {
+    while (nc < 8) {
         int best = -1;
         float best_area = -1.0f;
         for (int k = 0; k < nc; ++k) {
@@ -79,8 +81,8 @@ for (int w = 0; w < nw; ++w) {
         c[best] = L[x].i;
         c[nc++] = U[x].i;
     }
-    for (int k = 0; k < 4; ++k) {
-        int slot = w * 4 + k;
+    for (int k = 0; k < 8; ++k) {
+        int slot = w * 8 + k;
         if (k >= nc) { child[slot] = -2147483647 - 1; src[slot] = -1; continue; }
         int x = c[k];
         src[slot] = x;
@@ -123,14 +125,14 @@ def collapse_kernel(bvh_id: wp.uint64, n_items: int, max_nodes: int, out_child: 
 
 NODE_BOX = r"""
 wp::BVH bvh = wp::bvh_get(bvh_id);
-float* b = box.data + (size_t)(slot >> 2) * 24 + (slot & 3);
+float* b = box.data + (size_t)(slot >> 3) * 48 + (slot & 7);
 if (node < 0) {
-    b[0] = 0.0f; b[4] = 0.0f; b[8] = 0.0f; b[12] = 0.0f; b[16] = 0.0f; b[20] = 0.0f;
+    b[0] = 0.0f; b[8] = 0.0f; b[16] = 0.0f; b[24] = 0.0f; b[32] = 0.0f; b[40] = 0.0f;
     return;
 }
 const wp::BVHPackedNodeHalf lo = bvh.node_lowers[node];
 const wp::BVHPackedNodeHalf hi = bvh.node_uppers[node];
-b[0] = lo.x; b[4] = lo.y; b[8] = lo.z; b[12] = hi.x; b[16] = hi.y; b[20] = hi.z;
+b[0] = lo.x; b[8] = lo.y; b[16] = lo.z; b[24] = hi.x; b[32] = hi.y; b[40] = hi.z;
 """
 
 
@@ -150,8 +152,8 @@ WIDE_NEXT = r"""
 #if defined(__CUDA_ARCH__)
 return -1;
 #else
-typedef float v4f __attribute__((vector_size(16), aligned(4)));
-typedef int v4i __attribute__((vector_size(16), aligned(4)));
+typedef float v8f __attribute__((vector_size(32), aligned(4)));
+typedef int v8i __attribute__((vector_size(32), aligned(4)));
 int* st = wb.stack.data;
 float* stt = wb.stack_t.data;
 int* s = wb.state.data;
@@ -160,11 +162,16 @@ int cur = s[1];
 int end = s[2];
 const float ox = o[0], oy = o[1], oz = o[2];
 const float ix = inv[0], iy = inv[1], iz = inv[2];
-const v4f OX = {ox, ox, ox, ox}, OY = {oy, oy, oy, oy}, OZ = {oz, oz, oz, oz};
-const v4f IX = {ix, ix, ix, ix}, IY = {iy, iy, iy, iy}, IZ = {iz, iz, iz, iz};
-const v4f MD = {max_dist, max_dist, max_dist, max_dist};
-const v4f ZERO = {0.0f, 0.0f, 0.0f, 0.0f};
-const v4i NONE = {-2147483647 - 1, -2147483647 - 1, -2147483647 - 1, -2147483647 - 1};
+const v8f OX = {ox, ox, ox, ox, ox, ox, ox, ox};
+const v8f OY = {oy, oy, oy, oy, oy, oy, oy, oy};
+const v8f OZ = {oz, oz, oz, oz, oz, oz, oz, oz};
+const v8f IX = {ix, ix, ix, ix, ix, ix, ix, ix};
+const v8f IY = {iy, iy, iy, iy, iy, iy, iy, iy};
+const v8f IZ = {iz, iz, iz, iz, iz, iz, iz, iz};
+const v8f MD = {max_dist, max_dist, max_dist, max_dist, max_dist, max_dist, max_dist, max_dist};
+const v8f ZERO = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+const int none = -2147483647 - 1;
+const v8i NONE = {none, none, none, none, none, none, none, none};
 int result = -1;
 for (;;) {
     if (cur < end) {
@@ -192,23 +199,23 @@ for (;;) {
         end = start + count;
         continue;
     }
-    const float* b = wb.box.data + (size_t)e * 24;
-    const v4f tx0 = (*(const v4f*)(b) - OX) * IX, tx1 = (*(const v4f*)(b + 12) - OX) * IX;
-    const v4f ty0 = (*(const v4f*)(b + 4) - OY) * IY, ty1 = (*(const v4f*)(b + 16) - OY) * IY;
-    const v4f tz0 = (*(const v4f*)(b + 8) - OZ) * IZ, tz1 = (*(const v4f*)(b + 20) - OZ) * IZ;
-    const v4f tmin = __builtin_elementwise_max(__builtin_elementwise_max(__builtin_elementwise_min(tx0, tx1),
+    const float* b = wb.box.data + (size_t)e * 48;
+    const v8f tx0 = (*(const v8f*)(b) - OX) * IX, tx1 = (*(const v8f*)(b + 24) - OX) * IX;
+    const v8f ty0 = (*(const v8f*)(b + 8) - OY) * IY, ty1 = (*(const v8f*)(b + 32) - OY) * IY;
+    const v8f tz0 = (*(const v8f*)(b + 16) - OZ) * IZ, tz1 = (*(const v8f*)(b + 40) - OZ) * IZ;
+    const v8f tmin = __builtin_elementwise_max(__builtin_elementwise_max(__builtin_elementwise_min(tx0, tx1),
         __builtin_elementwise_min(ty0, ty1)), __builtin_elementwise_min(tz0, tz1));
-    const v4f tmax = __builtin_elementwise_min(__builtin_elementwise_min(__builtin_elementwise_max(tx0, tx1),
+    const v8f tmax = __builtin_elementwise_min(__builtin_elementwise_min(__builtin_elementwise_max(tx0, tx1),
         __builtin_elementwise_max(ty0, ty1)), __builtin_elementwise_max(tz0, tz1));
-    const v4i ch = *(const v4i*)(wb.child.data + (size_t)e * 4);
-    const v4i hit = (tmax >= ZERO) & (tmax >= tmin) & (tmin < MD) & (ch != NONE);
+    const v8i ch = *(const v8i*)(wb.child.data + (size_t)e * 8);
+    const v8i hit = (tmax >= ZERO) & (tmax >= tmin) & (tmin < MD) & (ch != NONE);
     // the hit children, farthest first (by the midpoint key): pushed in that order, the nearest is popped next
     int n = 0;
-    int ci[4];
-    float ct[4];
-    float ck[4];
-    const v4f key = __builtin_elementwise_max(tmin, ZERO) + tmax;
-    for (int k = 0; k < 4; ++k) {
+    int ci[8];
+    float ct[8];
+    float ck[8];
+    const v8f key = __builtin_elementwise_max(tmin, ZERO) + tmax;
+    for (int k = 0; k < 8; ++k) {
         if (hit[k]) {
             const float t = key[k];
             int j = n;
@@ -247,8 +254,8 @@ def wide_start(wb: WideBvh):
 def empty_wide(device: str) -> WideBvh:
     """Placeholder for launches that do not use the wide tree (never read)."""
     w = WideBvh()
-    w.box = wp.zeros(24, dtype=float, device=device)
-    w.child = wp.full(4, EMPTY, dtype=wp.int32, device=device)
+    w.box = wp.zeros(48, dtype=float, device=device)
+    w.child = wp.full(8, EMPTY, dtype=wp.int32, device=device)
     w.prims = wp.zeros(1, dtype=wp.int32, device=device)
     w.lowers = wp.zeros(1, dtype=wp.vec3, device=device)
     w.uppers = wp.zeros(1, dtype=wp.vec3, device=device)
@@ -278,7 +285,7 @@ class WideTree:
             self.current = False
         if self.current:
             return
-        slots = self.nodes * 4
+        slots = self.nodes * 8
         parts = ray_chunks(slots, threads if slots >= 65536 else 1)
         run([(lambda a=a, b=b: wp.launch(refit_wide_kernel, dim=b - a, device=self.device,
                                          inputs=[wp.uint64(bvh.id), self.src, self.box, a])) for a, b in parts])
@@ -287,8 +294,8 @@ class WideTree:
     def _collapse(self, bvh: wp.Bvh, lowers: wp.array, uppers: wp.array, n: int, threads: int) -> None:
         max_nodes = max(1, n)
         dev = self.device
-        child = wp.empty(max_nodes * 4, dtype=wp.int32, device=dev)
-        src = wp.empty(max_nodes * 4, dtype=wp.int32, device=dev)
+        child = wp.empty(max_nodes * 8, dtype=wp.int32, device=dev)
+        src = wp.empty(max_nodes * 8, dtype=wp.int32, device=dev)
         prims = wp.empty(max(n, 1), dtype=wp.int32, device=dev)
         queue = wp.empty(max_nodes, dtype=wp.int32, device=dev)
         depth = wp.empty(max_nodes, dtype=wp.int32, device=dev)
@@ -300,9 +307,9 @@ class WideTree:
             raise RuntimeError(f"wide BVH: the binary tree of {n} items has a leaf of more than 15 items or more "
                                f"than {max_nodes} internal nodes; use TracerConfig(wide_bvh=False)")
         self.nodes, self.depth = nodes, tree_depth
-        self.child, self.src, self.prims = child[: nodes * 4], src[: nodes * 4], prims
-        self.box = wp.empty(nodes * 24, dtype=float, device=dev)
-        stack_size = 3 * tree_depth + 2
+        self.child, self.src, self.prims = child[: nodes * 8], src[: nodes * 8], prims
+        self.box = wp.empty(nodes * 48, dtype=float, device=dev)
+        stack_size = 7 * tree_depth + 2
         self.structs = []
         for _ in range(threads):
             w = WideBvh()
