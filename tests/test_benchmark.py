@@ -55,8 +55,9 @@ def test_quick_benchmark_writes_complete_json(tmp_path, capsys):
         assert 1.0 <= r["exact_order_floor"] <= r["candidates_per_blended"] * 1.15, r["scene"]  # (a ray sample)
     deep = next(r for r in data["scenes"] if r["scene"] == "deep")
     assert deep["candidates_per_blended"] < deep["single_candidates_per_blended"]
+    assert all(r["wide_bvh"] for r in data["scenes"])  # the CPU default: the 8-wide tree
     printed = capsys.readouterr().out
-    assert "fwd+bwd ms" in printed and "ours/mi" in printed
+    assert "fwd+bwd ms" in printed and "ours/mi" in printed and "8-wide tree" in printed
 
 
 @pytest.mark.parametrize("scene", ["room", "deep", "dense_room"])
@@ -91,7 +92,9 @@ def test_cli_rejects_bad_lists():
     with pytest.raises(ValueError, match=r"unknown scene type\(s\) \['cave'\]"):
         parse_args(["tracer", "--scenes", "room,cave"])
     _, cfg, _ = parse_args(["tracer", "--sizes", "1000", "--res", "8", "--threads", "1"])
-    assert cfg.sizes == [1000] and cfg.resolutions == [8] and cfg.threads == [1]
+    assert cfg.sizes == [1000] and cfg.resolutions == [8] and cfg.threads == [1] and cfg.wide_bvh
+    _, cfg, _ = parse_args(["tracer", "--binary-bvh", "--octants", "never"])
+    assert not cfg.wide_bvh and cfg.octants == "never"
 
 
 TRAIN_STEP_KEYS = {"device", "rays", "whole_view", "n_gaussians", "step_ms", "step_ms_min", "step_cpu_ms",

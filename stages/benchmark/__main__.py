@@ -54,6 +54,9 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
     p.add_argument("--octants", choices=["always", "never", "auto"], help="scene types: our tracer's octant trees "
                    "(TracerConfig.octant_bvh; default always, as a render uses them: refreshed once per update, and "
                    "the timed traces do not update)")
+    p.add_argument("--binary-bvh", action="store_true", help="scene types: our tracer queries Warp's binary tree "
+                   "(with --octants) instead of the 8-wide one (TracerConfig.wide_bvh false; the CPU default is the "
+                   "wide tree, CUDA always uses Warp's)")
     p.add_argument("--no-floor", action="store_true", help="scene types: skip the exact-order floor column "
                    "(boxes an exact t*-order traversal must examine per blended hit; stages/benchmark/floor.py)")
     a = p.parse_args(argv)
@@ -78,6 +81,8 @@ def parse_args(argv=None) -> tuple[str, TracerBenchmarkConfig, Path | None]:
         cfg.bvh = a.bvh
     if a.octants is not None:
         cfg.octants = a.octants
+    if a.binary_bvh:
+        cfg.wide_bvh = False
     cfg.__post_init__()
     return a.what, cfg, a.out
 

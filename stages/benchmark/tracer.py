@@ -47,6 +47,7 @@ class TracerBenchmarkConfig:
     floor: bool = True        # scene types: the exact-order floor of candidates per blended hit (floor.py)
     bvh: str = "auto"         # TracerConfig.bvh_constructor of every tracer compared
     octants: str = "always"   # scene types: our tracer's TracerConfig.octant_bvh (a render's: built once it pays)
+    wide_bvh: bool = True     # scene types: our tracer's TracerConfig.wide_bvh (False: Warp's binary tree)
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
@@ -180,7 +181,7 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     """One scene type: our default (interval) traversal, the single traversal it replaced and Mitsuba 3 on the
     same Gaussians and rays, timed interleaved (best of ``repeats``); counts per ray; fused / forward."""
     threads = max(cfg.threads)
-    ours = Tracer(_config(cfg, threads, octant_bvh=cfg.octants), cfg.device)
+    ours = Tracer(_config(cfg, threads, octant_bvh=cfg.octants, wide_bvh=cfg.wide_bvh), cfg.device)
     single = Tracer(_config(cfg, threads, traversal="single"), cfg.device)
     sync = device_sync(cfg.device)
     gs, origins, dirs = scene_type(name, cfg.scene_res, cfg.scene_n, cfg.seed)
@@ -188,7 +189,8 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
     tdev = ours.torch_device
     gs, origins, dirs = gs.to(device=tdev).requires_grad_(), origins.to(tdev), dirs.to(tdev)
     row: dict = {"scene": name, "description": SCENE_TYPES[name][0], "n_gaussians": len(gs), "rays": len(dirs),
-                 "threads": threads, "octant_bvh": cfg.octants}
+                 "threads": threads, "octant_bvh": cfg.octants,
+                 "wide_bvh": cfg.wide_bvh and ours.is_cpu}
 
     def forward(tr):
         with torch.no_grad():
@@ -354,7 +356,8 @@ def format_table(result: dict) -> str:
         lines.append(f"N={r['n_gaussians']} res={r['resolution']}: targets missed: {', '.join(missed) or 'none'}")
     if result.get("scenes"):
         octants = result["scenes"][0].get("octant_bvh", "auto")
-        lines += ["", f"scene types (our default = interval traversal, octant trees {octants}; single = the traversal "
+        tree = "8-wide tree" if result["scenes"][0].get("wide_bvh") else f"Warp's tree, octant trees {octants}"
+        lines += ["", f"scene types (our default = interval traversal, {tree}; single = the traversal "
                   "it replaced; mitsuba = Mitsuba 3 ellipsoids on the same Gaussians and rays):",
                   *_table(SCENE_COLUMNS, result["scenes"])]
         lines += [f"  {r['scene']}: {r['description']}" for r in result["scenes"]]
