@@ -92,29 +92,28 @@ def hit_less(t_a: float, id_a: int, t_b: float, id_b: int) -> int:
 
 
 @wp.func
-def hit_grad_geometry(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: float,
+def hit_grad_geometry(o: wp.vec3, d: wp.vec3, mean: wp.vec3, w2l: wp.mat33, opacity: float, alpha: float,
                       p: int, alpha_max: float, dl_dalpha: float, dl_dt: float,
                       g_mean: wp.array(dtype=wp.vec3), g_w2l: wp.array(dtype=wp.mat33),
                       g_opacity: wp.array(dtype=float), gid: int):
     """Chain dL/dalpha and dL/dt of one accepted hit to mean, M and opacity (atomics).
 
     r^2 is the minimum over t, so by the envelope theorem dr2/do_l = 2q, dr2/dd_l = 2 t q.
-    dt/do_l = -d_l / dd, dt/dd_l = -(o_l + 2 t d_l) / dd.
+    dt/do_l = -d_l / dd, dt/dd_l = -(o_l + 2 t d_l) / dd. ``alpha`` is the forward's (replay buffer): unclamped it is
+    opacity x response, so the response needs no exp here (dalpha/dr2 = -alpha r^(2p-2) / 2); one division by dd.
     """
     v = o - mean
     o_l = w2l * v
     d_l = w2l * d
     dd = wp.dot(d_l, d_l)
-    t = -wp.dot(o_l, d_l) / dd
-    q = closest_point(o_l, d_l, dd)
-    r2 = wp.dot(q, q)
-    response = kernel_response(r2, p)
-    raw = opacity * response
+    inv_dd = 1.0 / dd
+    t = -wp.dot(o_l, d_l) * inv_dd
+    q = wp.cross(d_l, wp.cross(o_l, d_l)) * inv_dd  # closest_point, multiplied by 1 / dd
     g_r2 = float(0.0)
-    if raw < alpha_max:
-        wp.atomic_add(g_opacity, gid, dl_dalpha * response)
-        g_r2 = dl_dalpha * (-0.5 * raw * int_power(r2, p - 1))
-    g_ol = (2.0 * g_r2) * q - (dl_dt / dd) * d_l
-    g_dl = (2.0 * g_r2 * t) * q - (dl_dt / dd) * (q + t * d_l)  # o_l + 2 t d_l = q + t d_l
+    if alpha < alpha_max:
+        wp.atomic_add(g_opacity, gid, dl_dalpha * (alpha / opacity))
+        g_r2 = dl_dalpha * (-0.5 * alpha * int_power(wp.dot(q, q), p - 1))
+    g_ol = (2.0 * g_r2) * q - (dl_dt * inv_dd) * d_l
+    g_dl = (2.0 * g_r2 * t) * q - (dl_dt * inv_dd) * (q + t * d_l)  # o_l + 2 t d_l = q + t d_l
     wp.atomic_add(g_w2l, gid, wp.outer(g_ol, v) + wp.outer(g_dl, d))
     wp.atomic_add(g_mean, gid, -(wp.transpose(w2l) * g_ol))

@@ -57,5 +57,5 @@ def backward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePa
         rec = g.packed[gid]
         hit_grad_geometry(o, d, wp.vec3(rec[0], rec[1], rec[2]),
                           wp.mat33(rec[3], rec[4], rec[5], rec[6], rec[7], rec[8], rec[9], rec[10], rec[11]),
-                          rec[12], prm.kernel_p, prm.alpha_max,
+                          rec[12], a, prm.kernel_p, prm.alpha_max,
                           dl_dalpha, w * gz, grads.means, grads.w2l, grads.opacity, gid)
