@@ -48,6 +48,7 @@ class TracerBenchmarkConfig:
     bvh: str = "auto"         # TracerConfig.bvh_constructor of every tracer compared
     octants: str = "always"   # scene types: our tracer's TracerConfig.octant_bvh (a render's: built once it pays)
     wide_bvh: bool = True     # scene types: our tracer's TracerConfig.wide_bvh (False: Warp's binary tree)
+    settle_s: float = 0.1     # scene types: idle pause after each timed call, its CPU time included (see the loop)
 
     def __post_init__(self) -> None:
         for name in ("sizes", "resolutions", "threads"):
@@ -210,7 +211,12 @@ def bench_scene_type(name: str, cfg: TracerBenchmarkConfig) -> dict:
             c0, w0 = time.process_time(), time.perf_counter()
             results[k] = fn()
             sync()
-            w, c = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
+            w = (time.perf_counter() - w0) * 1e3
+            # the call's CPU time includes what its worker threads spend after it returns: Dr.Jit's pool spins for
+            # tens of ms after Mitsuba's render, and charged to the next call it made ours on (b) 45 -> 57-59 CPU ms
+            # and 23.5 -> 31-32 ms wall (fewer free cores); settled here, it is charged to the call that caused it
+            time.sleep(cfg.settle_s)
+            c = (time.process_time() - c0) * 1e3
             best[k] = min(best[k], (w, c))
     out, ref = results["ours"], results["single"]
     row["forward_ms"], row["forward_cpu_ms"] = best["ours"]
