@@ -524,6 +524,30 @@ def test_wide_tree_returns_exactly_the_boxes_a_ray_meets(leaf_size):
         assert np.array_equal(np.sort(got), want), f"ray {r}: {len(got)} boxes, brute force {len(want)}"
 
 
+def test_wide_tree_that_cannot_be_collapsed_falls_back_to_warps(caplog):
+    """A binary tree with a leaf of more than 15 items cannot be encoded in the wide tree: refresh says so with a
+    warning naming the leaf size (no exception), and a tracer whose tree cannot be collapsed traces with Warp's, the
+    same outputs as wide_bvh off."""
+    from models.tracer.wide_bvh import WideTree
+
+    rng = np.random.default_rng(fresh_seed())
+    centre = rng.uniform(-1, 1, (400, 3)).astype(np.float32)
+    lo, hi = wp.array(centre - 0.05, dtype=wp.vec3), wp.array(centre + 0.05, dtype=wp.vec3)
+    tree = WideTree("cpu")
+    with caplog.at_level("WARNING"):
+        assert tree.refresh(wp.Bvh(lo, hi, leaf_size=64), lo, hi, 400, threads=1) is False
+    assert "more than 15 items" in caplog.text
+    assert tree.refresh(wp.Bvh(lo, hi), lo, hi, 400, threads=1) is True  # a new tree: tried again
+
+    gs, origins, dirs = scene_type("room", fresh_seed())
+    wide, plain = Tracer(TracerConfig(wide_bvh=True)), Tracer(TracerConfig(wide_bvh=False))
+    wide._wide_tree._collapse = lambda *args: False
+    a, b = wide.trace(origins, dirs, gs), plain.trace(origins, dirs, gs)
+    assert not wide._wide
+    for name in FORWARD + ["hit_count", "blended_count"]:
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
 def test_octant_trees_auto_refreshed_only_when_enough_rays_pay_for_them(monkeypatch):
     """octant_bvh auto: a tree that traces few rays between updates (a CPU training step) never builds or refits
     the mirrored trees; once the rays since the last update reach OCTANT_RAYS it refreshes them and uses them

@@ -347,13 +347,12 @@ class Tracer:
 
     def _wide_for(self) -> bool:
         """Whether this launch queries the wide tree (wide_bvh.py), refreshing it if so: the interval traversal on a
-        CPU with ``wide_bvh`` on."""
+        CPU with ``wide_bvh`` on, unless the tree cannot be collapsed (then Warp's, with a warning)."""
         if not (self.is_cpu and self.config.wide_bvh and self.config.traversal == "interval" and self.bvh.count > 0):
             return False
         with self.timer.section("tracer_host"), self.timer.section("bvh_update"):
-            self._wide_tree.refresh(self.bvh.bvh, self.bvh.lowers, self.bvh.uppers, self.bvh.count, self._threads,
-                                    run=lambda jobs: run_chunks(self._pool, jobs))
-        return True
+            return self._wide_tree.refresh(self.bvh.bvh, self.bvh.lowers, self.bvh.uppers, self.bvh.count,
+                                           self._threads, run=lambda jobs: run_chunks(self._pool, jobs))
 
     def _wide_struct(self, i: int):
         """Launch thread i's wide tree (its own stack), or the placeholder."""

@@ -25,10 +25,13 @@ struct that thread's launches get): a CPU launch runs its rays one after the oth
 
 from __future__ import annotations
 
+import logging
+
 import warp as wp
 
 from models.tracer.launch import ray_chunks
 
+log = logging.getLogger(__name__)
 EMPTY = -2147483648  # a child slot that holds nothing
 LEAF_BITS = 4        # a leaf slot encodes -(start << 4 | count) - 1 into the primitive order
 
@@ -273,25 +276,31 @@ class WideTree:
         self.device = device
         self.for_bvh = None          # the wp.Bvh the topology was collapsed from
         self.current = False         # the boxes hold the last update's
+        self.usable = False          # the tree of for_bvh could be collapsed
         self.nodes = 0
         self.depth = 0
         self.child = self.src = self.prims = self.box = None
         self.structs: list[WideBvh] = []
 
-    def refresh(self, bvh: wp.Bvh, lowers: wp.array, uppers: wp.array, n: int, threads: int, run=None) -> None:
+    def refresh(self, bvh: wp.Bvh, lowers: wp.array, uppers: wp.array, n: int, threads: int, run=None) -> bool:
+        """Make the tree hold the last update; False when ``bvh`` cannot be collapsed (a leaf of more than 15
+        items: the caller queries ``bvh`` itself)."""
         run = run or (lambda jobs: [job() for job in jobs])
         if bvh is not self.for_bvh:
-            self._collapse(bvh, lowers, uppers, n, threads)
+            self.usable = self._collapse(bvh, lowers, uppers, n, threads)
             self.current = False
+        if not self.usable:
+            return False
         if self.current:
-            return
+            return True
         slots = self.nodes * 8
         parts = ray_chunks(slots, threads if slots >= 65536 else 1)
         run([(lambda a=a, b=b: wp.launch(refit_wide_kernel, dim=b - a, device=self.device,
                                          inputs=[wp.uint64(bvh.id), self.src, self.box, a])) for a, b in parts])
         self.current = True
+        return True
 
-    def _collapse(self, bvh: wp.Bvh, lowers: wp.array, uppers: wp.array, n: int, threads: int) -> None:
+    def _collapse(self, bvh: wp.Bvh, lowers: wp.array, uppers: wp.array, n: int, threads: int) -> bool:
         max_nodes = max(1, n)
         dev = self.device
         child = wp.empty(max_nodes * 8, dtype=wp.int32, device=dev)
@@ -303,9 +312,11 @@ class WideTree:
         wp.launch(collapse_kernel, dim=1, device=dev,
                   inputs=[wp.uint64(bvh.id), n, max_nodes, child, src, prims, queue, depth, info])
         nodes, tree_depth, bad = (int(v) for v in info.numpy())
+        self.for_bvh = bvh
         if bad:
-            raise RuntimeError(f"wide BVH: the binary tree of {n} items has a leaf of more than 15 items or more "
-                               f"than {max_nodes} internal nodes; use TracerConfig(wide_bvh=False)")
+            log.warning("wide BVH: the binary tree of %d items has a leaf of more than 15 items (or more than %d "
+                        "internal nodes): its traces query it directly", n, max_nodes)
+            return False
         self.nodes, self.depth = nodes, tree_depth
         self.child, self.src, self.prims = child[: nodes * 8], src[: nodes * 8], prims
         self.box = wp.empty(nodes * 48, dtype=float, device=dev)
@@ -318,5 +329,5 @@ class WideTree:
             w.stack_t = wp.zeros(stack_size, dtype=float, device=dev)
             w.state = wp.zeros(4, dtype=wp.int32, device=dev)
             self.structs.append(w)
-        self.for_bvh = bvh
+        return True
 
