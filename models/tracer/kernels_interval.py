@@ -78,22 +78,14 @@ def margin(t: float) -> float:
 
 
 @wp.func
-def slab(o: wp.vec3, inv: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
-    """(entry, exit) t of the ray in the box [lo, hi]; entry > exit when it misses."""
+def slab(o: wp.vec3, inv: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    """(entry, exit) t of the ray in the box [lo, hi], two scalars; entry > exit when it misses. (A vec2 read back
+    after two scalar stores stalled store-to-load forwarding once per candidate: ~4 % of benchmark (b)'s forward.)"""
     ta = wp.cw_mul(lo - o, inv)
     tb = wp.cw_mul(hi - o, inv)
     t0 = wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
     t1 = wp.min(wp.min(wp.max(ta[0], tb[0]), wp.max(ta[1], tb[1])), wp.max(ta[2], tb[2]))
-    return wp.vec2(t0, t1)
-
-
-@wp.func
-def slab_entry(o: wp.vec3, inv: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
-    """The entry t of ``slab`` alone, as a scalar: the same operations (a vec2 read back from memory after two
-    scalar stores stalled the store-to-load forwarding once per candidate: ~4 % of benchmark (b)'s forward)."""
-    ta = wp.cw_mul(lo - o, inv)
-    tb = wp.cw_mul(hi - o, inv)
-    return wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
+    return t0, t1
 
 
 @wp.func
@@ -228,15 +220,14 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
     cand = int(0)
     obb = int(0)
     inv = wp.vec3(safe_inv(d[0]), safe_inv(d[1]), safe_inv(d[2]))
-    scene = slab(o, inv, prm.scene_lo, prm.scene_hi)
-    t_end = scene[1]
+    scene_in, t_end = slab(o, inv, prm.scene_lo, prm.scene_hi)
     done = int(0)
-    if scene[0] > scene[1] or t_end <= prm.t_min:
+    if scene_in > t_end or t_end <= prm.t_min:
         done = 1  # the ray misses every Gaussian's box
     t_lo = prm.t_min     # hits after (t_lo, id_lo) are still to come: the last blended, or the last window's end
     id_lo = int(-1)
     delta = prm.window / wp.length(d)
-    if prm.inside_whole != 0 and scene[0] <= prm.t_min:
+    if prm.inside_whole != 0 and scene_in <= prm.t_min:
         if in_box(o + d * prm.t_min, prm.core_lo, prm.core_hi) != 0:
             delta = t_end - prm.t_min  # a ray from inside the Gaussians' core box: one window (module docstring)
     examined = float(-FAR)  # boxes entered before this were examined (while skip_ok): their hits blended or carried
@@ -251,7 +242,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             outs.candidates[ray] = cand
             outs.obb_candidates[ray] = obb
             return 0
-        d_t = wp.max(t_lo, scene[0]) + delta   # the window ends at (d_t, d_id)
+        d_t = wp.max(t_lo, scene_in) + delta   # the window ends at (d_t, d_id)
         d_id = int(ID_MAX)
         last = int(0)
         if d_t >= t_end:
@@ -316,7 +307,7 @@ def forward_interval(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: Tra
             if gid < 0:
                 more = 0
                 continue
-            entry = slab_entry(o, inv, prm.lowers[gid], prm.uppers[gid])
+            entry, _exit = slab(o, inv, prm.lowers[gid], prm.uppers[gid])
             if (last != 0 or entry < entered) and (skip_ok == 0 or entry >= examined):
                 cand += 1
                 h_t, h_a, h_in = eval_packed(o, d, g.packed[gid], prm.kernel_p, prm.alpha_min, prm.alpha_max,

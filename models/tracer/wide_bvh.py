@@ -33,13 +33,12 @@ from models.tracer.launch import ray_chunks
 
 log = logging.getLogger(__name__)
 EMPTY = -2147483648  # a child slot that holds nothing
-LEAF_BITS = 4        # a leaf slot encodes -(start << 4 | count) - 1 into the primitive order
 
 
 @wp.struct
 class WideBvh:
     box: wp.array(dtype=float)        # [M * 48]: node m's child boxes, planes lo x, lo y, lo z, hi x, hi y, hi z
-    child: wp.array(dtype=wp.int32)   # [M * 8]: >= 0 a wide node; EMPTY; else a leaf (LEAF_BITS)
+    child: wp.array(dtype=wp.int32)   # [M * 8]: >= 0 a wide node; EMPTY; else a leaf: -(start << 4 | count) - 1
     prims: wp.array(dtype=wp.int32)   # [N]: the binary tree's primitive order (leaves index into it)
     lowers: wp.array(dtype=wp.vec3)   # [N] the Gaussians' world bounds (a leaf of several is tested per item)
     uppers: wp.array(dtype=wp.vec3)
