@@ -488,6 +488,41 @@ def test_sphere_fill_joins_the_prior_when_on_and_logs_what_it_fitted(demo, tmp_p
     assert not off.prior.any() and not any(d.startswith("sphere fill") for d in off.decisions)
 
 
+def test_fill_colour_neighbours_stay_on_their_own_surface():
+    """``surface_neighbours`` (the fill's colour smoothness): at a room's corner a wall's surfels find their
+    neighbours on the wall, the floor's on the floor (the colour no longer averages across the corner:
+    zoo_corridor's metal walls took the ceiling's and the floor's diffuse); a shelf 15 cm above the floor is another
+    surface; a Gaussian without a normal takes its nearest as before; too few: itself."""
+    from models.reconstruction.trainer import surface_neighbours
+    s = np.linspace(0.0, 1.0, 21)
+    a, b = np.meshgrid(s, s, indexing="ij")
+    a, b = a.reshape(-1), b.reshape(-1)
+    floor = np.stack([a, np.zeros_like(a), b], 1)  # y = 0
+    wall = np.stack([np.zeros_like(a), a + 0.05, b], 1)  # x = 0, from the floor up
+    shelf = np.stack([a[:84] * 0.5 + 0.2, np.full(84, 0.15), b[:84] * 0.5 + 0.2], 1)
+    blob = np.array([[0.02, 0.02, 0.5]])
+    pos = np.concatenate([floor, wall, shelf, blob])
+    kind = np.repeat([0, 1, 2, 3], [len(floor), len(wall), len(shelf), 1])
+    normals = np.zeros_like(pos)
+    normals[kind == 0] = [0.0, 1.0, 0.0]
+    normals[kind == 1] = [-1.0, 0.0, 0.0]  # either sign
+    normals[kind == 2] = [0.0, 1.0, 0.0]
+    idx = surface_neighbours(pos, normals, 8)
+    assert idx.shape == (len(pos), 8)
+    for k in (0, 1):  # corner rows included (the round blob, with no normal, may be anyone's neighbour)
+        rows = np.nonzero(kind == k)[0]
+        assert np.all((kind[idx[rows]] == k) | (kind[idx[rows]] == 3)), k
+        assert (kind[idx[rows]] == k).mean() > 0.99
+    shelf_rows = np.nonzero(kind == 2)[0]
+    assert np.all((kind[idx[shelf_rows]] == 2) | (idx[shelf_rows] == shelf_rows[:, None]))
+    # the blob (no normal) takes its 8 nearest of any kind
+    from scipy.spatial import cKDTree
+    assert sorted(idx[-1]) == sorted(cKDTree(pos).query(pos[-1], k=9)[1][1:])
+    # two points on different planes: each has only itself
+    two = surface_neighbours(pos[[0, len(floor)]], normals[[0, len(floor)]], 8)
+    assert two.tolist() == [[0] * 8, [1] * 8]
+
+
 def test_prior_smoothness_pulls_a_fill_colour_toward_its_neighbours_and_survives_pruning(demo):
     """``loss.prior_smooth``: a plane-fill Gaussian's colour is held to the mean of its 8 nearest fill neighbours'
     (reflections alone train it, one noisy sample per ray: free, zoo_lamps' unseen ceiling became confetti). Zero
