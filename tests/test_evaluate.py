@@ -186,6 +186,35 @@ def test_true_layer_scores_name_the_layer_that_limits_the_final_image(tmp_path):
     assert m["psnr_final_tonemapped"] < 40
 
 
+def test_dark_error_share_finds_light_where_the_truth_has_none(tmp_path):
+    """dark_error_share_<layer>: the share of a layer's tonemapped error on pixels where the truth's layer is dark
+    (every channel below DARK x the peak: a matte surface's specular, a metal's diffuse). The test view's left half
+    made matte (no specular), its bottom-right quarter metal (no diffuse); a render that leaks 1 % of the peak of
+    specular onto the matte half and is 10 % off in diffuse everywhere but on the metal has all its specular error
+    on the dark pixels and none of its diffuse error."""
+    from models.metrics.scoring import DARK
+    cap = _lamp_capture()
+    test = cap.split("test")[0]
+    h, w = test.buffers["diffuse"].shape[:2]
+    test.buffers["specular"][:, : w // 2] = 0.0
+    test.buffers["diffuse"][h // 2:, w // 2:] = 0.0
+    spec, diffuse = test.buffers["specular"], test.buffers["diffuse"] + test.buffers["emission"]
+    _write_render(tmp_path, test.name, diffuse, spec, diffuse + spec)
+    peak = evaluate_renders(cap, tmp_path)["views"][test.name]["peak"]
+    dark_s, dark_d = (spec < DARK * peak).all(-1), (diffuse < DARK * peak).all(-1)
+    assert dark_s.mean() == pytest.approx(0.5) and dark_d.mean() == pytest.approx(0.25)
+    leak = np.where(dark_s[..., None], spec + 0.01 * peak, spec)
+    wrong = diffuse * 1.1
+    _write_render(tmp_path, test.name, wrong, leak, wrong + leak)
+    result = evaluate_renders(cap, tmp_path)
+    m = result["views"][test.name]
+    assert m["dark_fraction_specular"] == pytest.approx(0.5) and m["dark_fraction_diffuse"] == pytest.approx(0.25)
+    assert m["dark_error_share_specular"] == pytest.approx(1.0)
+    assert m["dark_error_share_diffuse"] == 0.0
+    assert m["psnr_specular_tonemapped"] < 30 and m["psnr_diffuse_tonemapped"] < 45
+    assert "dark_error_share_<layer>" in result["definitions"]
+
+
 def test_normal_angles_on_all_and_on_shiny_pixels(tmp_path):
     """normal_angle_deg: median angle between our (unnormalised) rendered normals and the truth's;
     shiny_normal_angle_deg[_p90]: the same on F0 > 0.3 pixels only; absent without normals."""

@@ -67,6 +67,10 @@ def test_batch_report_tables(tiny_demo, tmp_path):
     assert f"{metrics['seen_psnr_final_tonemapped']:.2f}" in dom
     assert f"{metrics['psnr_final_tonemapped_true_specular']:.2f}" in dom  # which layer limits it
     assert f"{metrics['shiny_normal_angle_deg']:.1f} ({metrics['shiny_normal_angle_deg_p90']:.1f})" in dom
+    # light where the truth has none: the share of the diffuse / specular error on the truth's dark pixels
+    assert "specular error on dark pixels" in dom
+    share, dark = (100 * metrics[f"dark_{k}_specular"] for k in ("error_share", "fraction"))
+    assert f"{share:.0f} ({dark:.0f})" in dom
 
 
 def test_batch_report_names_missing_scene(tmp_path):

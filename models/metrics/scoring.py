@@ -34,6 +34,7 @@ from .lpips import MIN_SIZE as LPIPS_MIN_SIZE
 from .lpips import LpipsWeights, lpips_images
 
 SHINY_F0 = 0.3  # ground-truth F0 above this: a metal / mirror pixel (normal scores)
+DARK = 1e-4  # a ground-truth layer below this x the view's peak in every channel is dark (dark_error_share)
 
 DEFINITIONS = {
     "peak": "the view's reference peak: max of its ground-truth final image (diffuse + specular + emission) over "
@@ -64,6 +65,13 @@ DEFINITIONS = {
                                              "training views but through reflections or priors",
     "unseen_error_share_<layer>": "share of the view's tonemapped squared error (psnr_<layer>_tonemapped) on the "
                                   "unseen pixels",
+    "dark_fraction_<layer>": f"share of the view's pixels where the ground-truth layer is dark: every channel "
+                             f"below {DARK:g} x the view's peak (the specular of a matte surface, the diffuse of "
+                             "a metal one: exactly 0 in a synthetic truth)",
+    "dark_error_share_<layer>": "share of the view's tonemapped squared error (psnr_<layer>_tonemapped) on those "
+                                "pixels: light where there is none. The mu-law reads 0.02 under a peak of 10 as "
+                                "0.3 of its range, so a small leak there costs much (zoo_corridor's diffuse: 76-96 "
+                                "%, the metal walls' diffuse)",
     "psnr_final_tonemapped_true_<diffuse|specular>": "what limits the final image: psnr_final_tonemapped of our "
                                                      "render with the ground truth's diffuse (+ emission) / specular "
                                                      "layer in place of ours; the layer whose truth lifts it most is "
@@ -191,6 +199,20 @@ def _seen_scores(view, train, tonemapped: dict) -> dict:
     return row
 
 
+def _dark_scores(gt: dict, tonemapped: dict, peak: float) -> dict:
+    """dark_fraction_<layer>, dark_error_share_<layer> (``DEFINITIONS``) for the diffuse and specular layers
+    (``tonemapped``: layer -> (ours, truth) mu-law images)."""
+    row = {}
+    for layer in ("diffuse", "specular"):
+        dark = (np.asarray(gt[layer]) < DARK * peak).all(-1)
+        mp, mt = tonemapped[layer]
+        err = ((mp - mt) ** 2).mean(-1)
+        total = float(err.sum())
+        row[f"dark_fraction_{layer}"] = float(dark.mean())
+        row[f"dark_error_share_{layer}"] = float(err[dark].sum() / total) if total > 0 else 0.0
+    return row
+
+
 def _normal_scores(view, rendered: dict) -> dict:
     """normal_angle_deg, shiny_normal_angle_deg[_p90] (``DEFINITIONS``); {} without normals on either side."""
     if "normal" not in view.buffers or "normal" not in rendered:
@@ -243,6 +265,7 @@ def evaluate_renders(capture: Capture, renders: Path, regions: dict | None = Non
                                      scores[f"over1_{layer}"])
             if reasons:
                 saturated.append({"view": view.name, "layer": layer, "reasons": reasons})
+        row.update(_dark_scores(gt, tonemapped, row["peak"]))
         for layer, other in (("diffuse", "specular"), ("specular", "diffuse")):
             row[f"psnr_final_tonemapped_true_{layer}"] = psnr(hdr.mu_law(gt[layer] + pred[other], row["peak"]),
                                                              tonemapped["final"][1])

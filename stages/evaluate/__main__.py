@@ -21,8 +21,9 @@ def main(argv: list[str] | None = None) -> int:
         "'saturated' lists scores that stopped measuring (models/metrics/scoring.py DEFINITIONS); where the training "
         "views have depth, the tonemapped scores split into the pixels a training camera sees directly and the rest "
         "(seen_fraction, <seen|unseen>_psnr_<layer>_tonemapped, unseen_error_share_<layer>); with normal buffers, "
-        "the angle between our normals and the truth's (normal_angle_deg, shiny_normal_angle_deg on F0 > 0.3). "
-        "Adds training "
+        "the angle between our normals and the truth's (normal_angle_deg, shiny_normal_angle_deg on F0 > 0.3); the "
+        "share of the diffuse / specular error where that layer of the truth is dark (dark_error_share_<layer>: "
+        "light where there is none). Adds training "
         "time, Gaussian count, peak memory and the training decisions from the model's stage.json, render time "
         "from the renders' stage.json, and render FPS at 1 spp (no denoiser). Writes <out> (metrics.json).",
     )

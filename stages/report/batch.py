@@ -64,8 +64,9 @@ def _photos_path_table(metrics: dict[str, dict]) -> str:
 def _seen_table(metrics: dict[str, dict]) -> str:
     """Per scene, where the test views' error is: on pixels a training camera sees directly or not
     (metrics.json seen_fraction, <seen|unseen>_psnr_final_tonemapped, unseen_error_share_final), and the final
-    score with the true diffuse / specular layer in place of ours (which layer limits it), and the normals' angle
-    error on metal / mirror pixels."""
+    score with the true diffuse / specular layer in place of ours (which layer limits it), the normals' angle
+    error on metal / mirror pixels, and the diffuse / specular error on pixels where that layer of the truth is dark
+    (dark_error_share_<layer>, dark_fraction_<layer>)."""
     keys = {"seen_fraction", "psnr_final_tonemapped_true_diffuse"}
     names = [n for n in metrics if keys & set(metrics[n].get("mean", {}))]
     if not names:
@@ -83,7 +84,8 @@ def _seen_table(metrics: dict[str, dict]) -> str:
                     f"<td>{fmt(m.get('psnr_final_tonemapped_true_diffuse'))}</td>"
                     f"<td>{fmt(m.get('psnr_final_tonemapped_true_specular'))}</td>"
                     f"<td>{fmt(m.get('shiny_normal_angle_deg'), 1)} ({fmt(m.get('shiny_normal_angle_deg_p90'), 1)})"
-                    "</td></tr>")
+                    f"</td><td>{pct(m, 'dark_error_share_diffuse', 0)} ({pct(m, 'dark_fraction_diffuse', 0)})</td>"
+                    f"<td>{pct(m, 'dark_error_share_specular', 0)} ({pct(m, 'dark_fraction_specular', 0)})</td></tr>")
     return ("<h2>Where the error is: what the training cameras saw</h2><p class=\"note\">Test-view pixels whose "
             "ground-truth surface a training camera sees directly (its depth buffer has that surface there) vs the "
             "rest, which a model learns only through reflections or not at all. Final, tonemapped PSNR (dB), means "
@@ -92,11 +94,14 @@ def _seen_table(metrics: dict[str, dict]) -> str:
             "truth lifts it most is the one that limits the scene). Normals on metal / mirror pixels (ground-truth "
             "F0 > 0.3): the angle to the true normal in degrees, each view's median (90th percentile) averaged over "
             "the test views: "
-            "a reflection turns by twice it.</p><table><tr><th class=\"l\">scene</th>"
+            "a reflection turns by twice it. Light where there is none: the share of the diffuse / specular "
+            "layer's tonemapped error on pixels where that layer of the truth is dark (the diffuse of metal, the "
+            "specular of matte surfaces; their share of the pixels in brackets).</p><table><tr>"
+            "<th class=\"l\">scene</th>"
             "<th>seen pixels (%)</th><th>final</th><th>final, seen</th><th>final, unseen</th>"
             "<th>unseen share of the error (%)</th><th>final with true diffuse</th><th>final with true specular</th>"
-            "<th>shiny normals (deg)</th>"
-            "</tr>" + "".join(rows) + "</table>")
+            "<th>shiny normals (deg)</th><th>diffuse error on dark pixels (%)</th>"
+            "<th>specular error on dark pixels (%)</th></tr>" + "".join(rows) + "</table>")
 
 
 def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report", command: str | None = None,
