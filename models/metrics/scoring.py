@@ -70,7 +70,7 @@ DEFINITIONS = {
                              "a metal one: exactly 0 in a synthetic truth)",
     "dark_error_share_<layer>": "share of the view's tonemapped squared error (psnr_<layer>_tonemapped) on those "
                                 "pixels: light where there is none. The mu-law reads 0.02 under a peak of 10 as "
-                                "0.3 of its range, so a small leak there costs much (zoo_corridor's diffuse: 76-96 "
+                                "0.3 of its range, so a small leak there costs much (zoo_corridor's diffuse: 75-94 "
                                 "%, the metal walls' diffuse)",
     "psnr_final_tonemapped_true_<diffuse|specular>": "what limits the final image: psnr_final_tonemapped of our "
                                                      "render with the ground truth's diffuse (+ emission) / specular "

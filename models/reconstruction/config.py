@@ -29,8 +29,8 @@ class LossWeights:
     f0: float = setting(1.0, "L1 on blended F0", minimum=0)
     prior_smooth: float = setting(2.0, "L1 between each plane-fill Gaussian's diffuse colour and the mean of its 8 "
                                   "nearest fill neighbours' on its own surface (averaged over the fill; not in the "
-                                  "paper). What no "
-                                  "training view sees is trained by reflections alone, one noisy sample per ray: "
+                                  "paper). What no training view sees is trained by reflections alone, one noisy "
+                                  "sample per ray: "
                                   "left free, each fill Gaussian took its own colour (zoo_lamps' unseen ceiling: "
                                   "colour std 0.03 -> 0.15 over training, a confetti ceiling); 0 = off", minimum=0)
 
