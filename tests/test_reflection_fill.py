@@ -101,17 +101,18 @@ def test_highlight_fill_puts_emitters_where_bright_open_reflections_leave_the_bo
 
 def test_highlight_fill_says_how_many_highlights_end_on_the_plane_fill():
     """The same lamp; the opaque ceiling over x < 0, marked as the plane fill, blocks the x < -0.3 highlights:
-    counted and noted (a light on an unseen ceiling gets no emitters); the emitters (x > 0.3) are the same as
-    without the mask, and without it nothing is counted."""
+    with ``on_fill=False`` they are counted and noted (a light on an unseen ceiling gets no emitters); the
+    emitters (x > 0.3) are the same as without the mask, and without it nothing is counted."""
     rays = _mirror_rays()
     x = rays.origins[:, 0]
     rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
     rays.targets["diffuse"][:] = 0.5
     scene = _scene()
     ceiling = torch.arange(len(scene)) >= 8  # _scene(): 8 faint corners, then the ceiling
-    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling)
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling)  # on_fill off (default)
     plain, plain_stats = highlight_fill_gaussians(rays, reference_trace, scene)
     assert stats["on_fill"] == (x < -0.3).sum().item() and plain_stats["on_fill"] == 0
+    assert stats["on_fill_added"] == 0 and plain_stats["on_fill_added"] == 0
     on_fill = [n for n in stats["notes"] if "end on the plane fill" in n]
     assert len(on_fill) == 1 and f"{stats['on_fill']} of {(x.abs() > 0.3).sum().item()} highlight" in on_fill[0]
     assert stats["notes"][1:] == plain_stats["notes"]  # the sweep's own note (box scale at its edge) kept
@@ -119,6 +120,32 @@ def test_highlight_fill_says_how_many_highlights_end_on_the_plane_fill():
     torch.testing.assert_close(lights.means, plain.means)
     _, seen = highlight_fill_gaussians(rays, reference_trace, scene, fill=~ceiling)  # blocked by seen geometry
     assert seen["on_fill"] == 0 and not any("plane fill" in n for n in seen["notes"])
+
+
+def test_highlight_fill_puts_emitters_on_the_plane_fill_where_highlights_end_on_it():
+    """A lamp on an unseen ceiling (the plane fill over x < 0 at z = 0.95, the lamp's reflections x < -0.3):
+    with ``on_fill`` each highlight that ends on the fill gets an emitter just in front of the fill's front, over its
+    own mirror point, with the reflection's radiance; the open highlights' emitters (x > 0.3, on the swept box)
+    are unchanged."""
+    rays = _mirror_rays()
+    x = rays.origins[:, 0]
+    rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
+    rays.targets["diffuse"][:] = 0.5
+    scene = _scene()
+    ceiling = torch.arange(len(scene)) >= 8
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
+    plain, _ = highlight_fill_gaussians(rays, reference_trace, scene)
+    want = (x < -0.3).sum().item()
+    assert stats["on_fill"] == stats["on_fill_added"] == want and stats["added"] == len(plain)
+    assert not any("plane fill" in n for n in stats["notes"])
+    assert len(lights) == len(plain) + want
+    torch.testing.assert_close(lights.means[:len(plain)], plain.means)  # the open ones first, as before
+    on = lights.means[len(plain):]
+    torch.testing.assert_close(on[:, :2].sort(0).values, rays.origins[x < -0.3, :2].sort(0).values)
+    # in front of the ceiling Gaussians (centres z = 0.95, sigma 0.08): between their front and their centre
+    assert (on[:, 2] > 0.95 - 3 * 0.08).all() and (on[:, 2] < 0.95).all()
+    torch.testing.assert_close(lights.diffuse[len(plain):], torch.full((want, 3), 10.0))
+    assert torch.isfinite(lights.log_scales).all() and (lights.roughness == 1).all()
 
 
 def _lamp_over_mirror(lamp_z: float = 1.6, half: float = 0.4) -> RaySet:

@@ -259,7 +259,8 @@ def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: 
 def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: float = HIGHLIGHT_BRIGHTNESS,
                              opacity: float = 0.5,
                              max_count: int = 4000, seed: int = 0,
-                             dtype=torch.float32, fill: torch.Tensor | None = None) -> tuple[Gaussians | None, dict]:
+                             dtype=torch.float32, fill: torch.Tensor | None = None,
+                             on_fill: bool = False) -> tuple[Gaussians | None, dict]:
     """Emitters seen only in mirrors: one Gaussian per HIGHLIGHT mirror ray, where the light is.
 
     A light that no camera sees directly (a ceiling lamp above an orbit of cameras) has no Gaussians, and
@@ -277,12 +278,18 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     they tile the light's patch). Positions a training camera sees to be empty are dropped (``seen_empty``).
 
     ``fill`` [N] bool, the plane fill's Gaussians in ``gaussians``: the highlight reflections that are blocked
-    only by them (open without them) are counted (``on_fill``) and, from ``ON_FILL_NOTE`` of them, a note says so:
-    they show a light on an unseen part of the room's planes (a ceiling light above or behind every camera),
-    which this fill does not place and training rarely grows (README, nineteenth session: zoo_corridor's ceiling
-    strips kept emitters only on the part the cameras see)."""
+    only by them (open without them) are counted (``on_fill``): they show a light on an unseen part of the
+    room's planes (a ceiling light above or behind every camera), which training rarely grows from the fill's
+    dim colour (README, nineteenth session: zoo_corridor's ceiling strips kept emitters only on the part the
+    cameras see). With ``on_fill`` each of them gets an emitter too, where the ray meets the fill (its front,
+    ``front_depth``, traced through the fill alone), one box step short of it: the plane gives the light's
+    distance, so no sweep is needed, and the emitters of different views land on the same patch. Off by default
+    (``reconstruct.highlight_on_fill``: measured worse, README, twenty-third session): where open highlights
+    of the same light were placed on the swept box too, the light is there twice, and a glossy reflector's
+    highlight pixels spread it past its edges. Without it, from ``ON_FILL_NOTE`` of them, a note says they got
+    none."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
-             "on_fill": 0, "notes": []}
+             "on_fill": 0, "on_fill_added": 0, "notes": []}
     t = rays.targets
     found = mirror_rays(rays, max_rays=len(rays), seed=seed)
     if found is None or "specular" not in t or "diffuse" not in t:
@@ -301,13 +308,24 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     x, r, radiance, bright = x[use], r[use], radiance[use], bright[use]
     out = trace_fn(x + step * r, r, gaussians)
     open_ = (out.transmittance.reshape(-1) > 0.5).cpu()
+    fill_pos = x[:0]
+    fill_radiance = radiance[:0]
     if fill is not None and bool(fill.any()):
         blocked = torch.nonzero(bright & ~open_).reshape(-1)
         if len(blocked):
             rest = gaussians.subset(~fill.to(gaussians.means.device))
             without = trace_fn((x + step * r)[blocked], r[blocked], rest)
-            stats["on_fill"] = int((without.transmittance.reshape(-1) > 0.5).sum())
-        if stats["on_fill"] >= ON_FILL_NOTE:
+            ends = blocked[(without.transmittance.reshape(-1) > 0.5).cpu()]
+            stats["on_fill"] = len(ends)
+            if on_fill and len(ends):
+                ends = ends[torch.randperm(len(ends), generator=torch.Generator().manual_seed(seed + 3))[:max_count]]
+                start = x[ends] + step * r[ends]
+                hit = trace_fn(start, r[ends], gaussians.subset(fill.to(gaussians.means.device)))
+                t = (hit.front_depth if hit.front_depth is not None else hit.depth).reshape(-1).cpu()
+                met = (hit.transmittance.reshape(-1).cpu() < 0.5) & (t > step)
+                fill_pos = (start + (t - step)[:, None] * r[ends])[met]
+                fill_radiance = radiance[ends][met]
+        if stats["on_fill"] >= ON_FILL_NOTE and not on_fill:
             stats["notes"].append(
                 f"highlight fill: {stats['on_fill']} of {int(bright.sum())} highlight reflections end on the plane "
                 "fill (the unseen parts of the room's planes): a light there gets no emitters and is left to "
@@ -316,19 +334,23 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     keep = torch.nonzero(bright).reshape(-1)
     keep = keep[torch.randperm(len(keep), generator=gen)[:max_count]]
     stats["highlight_rays"] = len(keep)
-    if len(keep) == 0:
-        return None, stats
-    scale_box, scales, _, notes = sweep_box_scale(x, r, bright, lo, hi)
-    stats["notes"] += notes
-    stats["box_scale"], stats["box_scale_range"] = scale_box, f"{scales[0]:.1f}-{scales[-1]:.2f}"
-    centre, half = (lo + hi) / 2, (hi - lo) / 2
-    lo, hi = centre - scale_box * half, centre + scale_box * half
-    x, r, radiance = x[keep], r[keep], radiance[keep]
-    pos = x + (box_exit(x, r, lo, hi) - 2 * step)[:, None] * r
+    pos = x[:0]
+    if len(keep):
+        scale_box, scales, _, notes = sweep_box_scale(x, r, bright, lo, hi)
+        stats["notes"] += notes
+        stats["box_scale"], stats["box_scale_range"] = scale_box, f"{scales[0]:.1f}-{scales[-1]:.2f}"
+        centre, half = (lo + hi) / 2, (hi - lo) / 2
+        lo, hi = centre - scale_box * half, centre + scale_box * half
+        x, r, radiance = x[keep], r[keep], radiance[keep]
+        pos = x + (box_exit(x, r, lo, hi) - 2 * step)[:, None] * r
+    else:
+        radiance = radiance[:0]
+    pos, radiance = torch.cat([pos, fill_pos]), torch.cat([radiance, fill_radiance])
     unseen = ~seen_empty(pos, rays.views)
+    stats["on_fill_added"] = int(unseen[len(pos) - len(fill_pos):].sum())
     pos, radiance = pos[unseen], radiance[unseen]
     n = len(pos)
-    stats["added"] = n
+    stats["added"] = n - stats["on_fill_added"]
     if n == 0:
         return None, stats
     if n > 1:

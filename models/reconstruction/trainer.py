@@ -576,12 +576,12 @@ class Trainer:
                                prior=True)
             if cfg.highlight_fill:
                 lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
-                                                         fill=plane_fill)
+                                                         fill=plane_fill, on_fill=cfg.highlight_on_fill)
                 stats["inside"] = keep_inside(lights.means, self._room) if lights is not None else 0
                 self._add_fill(lights, stats, "%(added)d emitting Gaussians where %(highlight_rays)d open highlight "
                                "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "
                                "searched %(box_scale_range)s; %(inside)d moved in front of a wall placed; "
-                               "%(on_fill)d more end on the plane fill)")
+                               "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)")
         relight_at = cfg.warmup + int(cfg.plane_fill_relight_at * (cfg.iterations - cfg.warmup))
         if (reflections and cfg.plane_fill_relight and self._room is not None and not self.plane_fill_relit
                 and self.step >= relight_at):
