@@ -148,6 +148,30 @@ def test_highlight_fill_puts_emitters_on_the_plane_fill_where_highlights_end_on_
     assert torch.isfinite(lights.log_scales).all() and (lights.roughness == 1).all()
 
 
+def test_highlight_fill_ends_highlights_on_walls_placed_later():
+    """``walls`` (planes placed after warm-up: a ceiling room closing found at z = 1.05, above the scene's box top
+    1.0 and under the swept box's 1.1) with ``on_fill``: the open highlights (x > 0.3) end on it, not on the
+    swept box: one placement per light, on the room's plane. Without ``on_fill`` the walls are not traced."""
+    rays = _mirror_rays()
+    x = rays.origins[:, 0]
+    rays.targets["specular"][x > 0.3] = 0.9 * 10.0
+    rays.targets["diffuse"][:] = 0.5
+    scene = _scene()
+    g = torch.linspace(-1, 1, 26)
+    xs, ys = torch.meshgrid(g, g, indexing="ij")
+    wall = _gaussians(torch.stack([xs.reshape(-1), ys.reshape(-1), torch.full((xs.numel(),), 1.05)], -1), 0.05,
+                      0.99)
+    fill = torch.zeros(len(scene), dtype=torch.bool)
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=fill, on_fill=True, walls=wall)
+    want = (x > 0.3).sum().item()
+    assert stats["highlight_rays"] == 0 and stats["on_fill"] == stats["on_fill_added"] == want == len(lights)
+    assert (lights.means[:, 2] < 1.05).all() and (lights.means[:, 2] > 1.05 - 3 * 0.05).all()
+    torch.testing.assert_close(lights.diffuse, torch.full((want, 3), 10.0))
+    plain, plain_stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=fill, walls=wall)
+    assert plain_stats["highlight_rays"] == want and plain_stats["on_fill"] == 0
+    assert torch.allclose(plain.means[:, 2], torch.full((want,), 1.1), atol=0.01)  # the swept box, as without
+
+
 def _lamp_over_mirror(lamp_z: float = 1.6, half: float = 0.4) -> RaySet:
     """Five cameras (four of them off to the sides) looking at a floor mirror (z = -0.9); the square lamp
     |x|, |y| < ``half`` at height ``lamp_z`` (above the scene's box, whose top is z = 1): a mirror pixel is

@@ -260,7 +260,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                              opacity: float = 0.5,
                              max_count: int = 4000, seed: int = 0,
                              dtype=torch.float32, fill: torch.Tensor | None = None,
-                             on_fill: bool = False) -> tuple[Gaussians | None, dict]:
+                             on_fill: bool = False, walls: Gaussians | None = None) -> tuple[Gaussians | None, dict]:
     """Emitters seen only in mirrors: one Gaussian per HIGHLIGHT mirror ray, where the light is.
 
     A light that no camera sees directly (a ceiling lamp above an orbit of cameras) has no Gaussians, and
@@ -287,7 +287,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     (``reconstruct.highlight_on_fill``: measured worse, README, twenty-third session): where open highlights
     of the same light were placed on the swept box too, the light is there twice, and a glossy reflector's
     highlight pixels spread it past its edges. Without it, from ``ON_FILL_NOTE`` of them, a note says they got
-    none."""
+    none. ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where
+    the mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight
+    that would have left through them ends on them, so each light is placed once, on the room's planes, rather
+    than on a swept box past (or short of) the wall that holds it."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
              "on_fill": 0, "on_fill_added": 0, "notes": []}
     t = rays.targets
@@ -302,6 +305,11 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     radiance = t["specular"][index] / t["f0"][index].clamp_min(0.05)
     bright = (radiance @ lum) > brightness * level
     lo, hi, step = scene_box(gaussians)
+    if on_fill and walls is not None and len(walls) and fill is not None:
+        walls = walls.to(gaussians.means.device, gaussians.means.dtype)
+        fill = torch.cat([fill.to(gaussians.means.device), torch.ones(len(walls), dtype=torch.bool,
+                                                                     device=gaussians.means.device)])
+        gaussians = Gaussians.cat([gaussians, walls])
     use = ((x > lo) & (x < hi)).all(-1) & (bright | ((radiance @ lum) < level))
     if not bright[use].any():
         return None, stats
