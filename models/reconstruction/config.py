@@ -149,11 +149,11 @@ class ReconstructConfig:
                                "reflections, curved mirrors too, agree on them (room_closing.py); a side whose "
                                "reflections agree best far away stays open")
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
-    highlight_on_fill: bool = setting(False, "highlight fill: emitters also where a highlight reflection ends on "
-                                      "the plane fill (a light on an unseen part of the room's planes: a ceiling "
-                                      "lamp behind the cameras), at the fill's front. Off: measured worse at two "
-                                      "seeds on the four zoo rooms it touches (the light doubled where open "
-                                      "highlights also place it, spread by glossy lobes; README)")
+    highlight_on_fill: bool = setting(False, "highlight fill: a highlight reflection that ends on the plane fill "
+                                      "or on a wall placed after warm-up (a light on an unseen part of the room's "
+                                      "planes: a ceiling lamp behind the cameras) gets an emitter there, at the "
+                                      "plane's front. Off: measured worse at two seeds (zoo_mirror_only -0.5 to "
+                                      "-0.9 dB, the other rooms within the spread; README, twenty-third session)")
     fill_anchor: float = setting(0.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
                                  "in mirrors) are surfels facing the views that placed them: along that direction "
                                  "they stay within this many of their initial sizes of where the fill put them and "

@@ -284,10 +284,9 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     cameras see). With ``on_fill`` each of them gets an emitter too, where the ray meets the fill (its front,
     ``front_depth``, traced through the fill alone), one box step short of it: the plane gives the light's
     distance, so no sweep is needed, and the emitters of different views land on the same patch. Off by default
-    (``reconstruct.highlight_on_fill``: measured worse, README, twenty-third session): where open highlights
-    of the same light were placed on the swept box too, the light is there twice, and a glossy reflector's
-    highlight pixels spread it past its edges. Without it, from ``ON_FILL_NOTE`` of them, a note says they got
-    none. ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where
+    (``reconstruct.highlight_on_fill``: measured worse at two seeds, zoo_mirror_only -0.5 to -0.9 dB, whether
+    its light was placed twice or, with ``walls``, once on its ceiling; README, twenty-third session). Without
+    it, from ``ON_FILL_NOTE`` of them, a note says they got none. ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where
     the mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight
     that would have left through them ends on them, so each light is placed once, on the room's planes, rather
     than on a swept box past (or short of) the wall that holds it."""
