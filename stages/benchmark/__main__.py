@@ -166,6 +166,9 @@ def seeds_main(argv) -> int:
     p.add_argument("--jobs", type=int, default=1, help="runs at once, each its own process (a GPU holds several)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", type=Path, default=Path("results/benchmark/seeds.json"))
+    p.add_argument("--keep", type=Path, default=None, metavar="DIR",
+                   help="keep every run's model and renders in DIR/<scene>_<seed>_<base|variant>/ (to compare them "
+                   "pixel by pixel); default: a temporary folder, deleted at the end")
     a = p.parse_args(argv)
     from stages.benchmark.seeds import format_table, parse_setting, run_seeds
     from stages.benchmark.sweep import config_for_sweep
@@ -193,7 +196,7 @@ def seeds_main(argv) -> int:
     except (ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    result = run_seeds(scenes, variant, a.seeds, a.device, a.jobs,
+    result = run_seeds(scenes, variant, a.seeds, a.device, a.jobs, work_dir=a.keep,
                        progress=lambda m: print(m, file=sys.stderr, flush=True))
     result.update(both=both, iterations=a.iterations, presets=a.preset)
     print(format_table(result))
