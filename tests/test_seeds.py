@@ -65,3 +65,7 @@ def test_seeds_cli_says_what_is_missing(tmp_path, capsys):
     assert "no seeds" in capsys.readouterr().err
     assert benchmark_main(["seeds", "--scenes", "nope", "--set", "reconstruct.fill_anchor=1"]) == 1
     assert "unknown scene 'nope'" in capsys.readouterr().err
+    (tmp_path / "a_file").write_text("x")
+    assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=1",
+                           "--keep", str(tmp_path / "a_file")]) == 1
+    assert f"--keep {tmp_path / 'a_file'}: exists and is not a folder" in capsys.readouterr().err

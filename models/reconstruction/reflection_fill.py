@@ -286,10 +286,12 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     distance, so no sweep is needed, and the emitters of different views land on the same patch. Off by default
     (``reconstruct.highlight_on_fill``: measured worse at two seeds, zoo_mirror_only -0.5 to -0.9 dB, whether
     its light was placed twice or, with ``walls``, once on its ceiling; README, twenty-third session). Without
-    it, from ``ON_FILL_NOTE`` of them, a note says they got none. ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where
-    the mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight
-    that would have left through them ends on them, so each light is placed once, on the room's planes, rather
-    than on a swept box past (or short of) the wall that holds it."""
+    it, from ``ON_FILL_NOTE`` of them, a note says they got none.
+
+    ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where the
+    mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight that
+    would have left through them ends on them, so each light is placed once, on the room's planes, rather than
+    on a swept box past (or short of) the wall that holds it."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
              "on_fill": 0, "on_fill_added": 0, "notes": []}
     t = rays.targets
@@ -328,9 +330,9 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                 ends = ends[torch.randperm(len(ends), generator=torch.Generator().manual_seed(seed + 3))[:max_count]]
                 start = x[ends] + step * r[ends]
                 hit = trace_fn(start, r[ends], gaussians.subset(fill.to(gaussians.means.device)))
-                t = (hit.front_depth if hit.front_depth is not None else hit.depth).reshape(-1).cpu()
-                met = (hit.transmittance.reshape(-1).cpu() < 0.5) & (t > step)
-                fill_pos = (start + (t - step)[:, None] * r[ends])[met]
+                front = (hit.front_depth if hit.front_depth is not None else hit.depth).reshape(-1).cpu()
+                met = (hit.transmittance.reshape(-1).cpu() < 0.5) & (front > step)
+                fill_pos = (start + (front - step)[:, None] * r[ends])[met]
                 fill_radiance = radiance[ends][met]
         if stats["on_fill"] >= ON_FILL_NOTE and not on_fill:
             stats["notes"].append(

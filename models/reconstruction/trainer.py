@@ -576,10 +576,10 @@ class Trainer:
                                prior=True)
             if cfg.highlight_fill:
                 later = [f[0] for f in (walls, grown, closed, planar) if f is not None and f[0] is not None]
-                later = Gaussians.cat([g.to(scene.device, scene.dtype) for g in later]) if later else None
+                later = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in later])
+                         if later and cfg.highlight_on_fill else None)  # the planes placed since warm-up
                 lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
-                                                         fill=plane_fill, on_fill=cfg.highlight_on_fill,
-                                                         walls=later if cfg.highlight_on_fill else None)
+                                                         fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=later)
                 stats["inside"] = keep_inside(lights.means, self._room) if lights is not None else 0
                 self._add_fill(lights, stats, "%(added)d emitting Gaussians where %(highlight_rays)d open highlight "
                                "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "

@@ -184,6 +184,8 @@ def seeds_main(argv) -> int:
             raise ValueError("nothing to compare: give the variant's change with --set SECTION.KEY=VALUE")
         if not a.seeds:
             raise ValueError("no seeds: give --seeds, e.g. 0,1")
+        if a.keep is not None and a.keep.exists() and not a.keep.is_dir():
+            raise ValueError(f"--keep {a.keep}: exists and is not a folder")
         scenes = {}
         for name in [s for s in a.scenes.split(",") if s]:
             config = config_for_sweep(deep_merge(load_config(name, presets=a.preset), both), a.iterations)
