@@ -58,6 +58,10 @@ def test_seeds_cli_says_what_is_missing(tmp_path, capsys):
                            "--results", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "no capture for scene 'demo'" in err and str(tmp_path / "demo" / "capture") in err
+    (tmp_path / "bad.json").write_text("[1, 2]")
+    assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=3",
+                           "--reuse", str(tmp_path / "bad.json"), "--results", str(tmp_path)]) == 1
+    assert f"--reuse {tmp_path / 'bad.json'}: not a seeds result" in capsys.readouterr().err
     assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=-1",
                            "--results", str(tmp_path)]) == 1
     assert "reconstruct.fill_anchor must be >= 0" in capsys.readouterr().err
@@ -69,3 +73,59 @@ def test_seeds_cli_says_what_is_missing(tmp_path, capsys):
     assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=1",
                            "--keep", str(tmp_path / "a_file")]) == 1
     assert f"--keep {tmp_path / 'a_file'}: exists and is not a folder" in capsys.readouterr().err
+
+
+def test_seeds_reuses_points_of_the_same_code_settings_seed_and_capture(tmp_path, monkeypatch):
+    """--reuse: a point made by the same code, settings, seed, device and capture is taken from the earlier result,
+    not trained again (runs reproduce exactly); a changed variant or capture trains again."""
+    import stages.benchmark.seeds as seeds
+
+    capture = tmp_path / "capture"
+    (capture / "images").mkdir(parents=True)
+    (capture / "transforms.json").write_text("{}")
+    (capture / "images" / "train_000.exr").write_bytes(b"x" * 10)
+    trained = []
+
+    def fake_point(task):
+        trained.append((task["seed"], task["variant"]))
+        score = 20.0 + task["seed"] + (1.0 if task["config"]["reconstruct"].get("back_fill") is False else 0.0)
+        return {"scene": task["scene"], "seed": task["seed"], "variant": task["variant"], "train_s": 1.0,
+                "gaussians": 1, "views": {}, "regions": {},
+                **{f"psnr_{layer}_tonemapped": score for layer in ("final", "specular", "diffuse")}}
+
+    monkeypatch.setattr(seeds, "_point", fake_point)
+    scenes = {"demo": (capture, {"reconstruct": {"iterations": 10}})}
+    off = {"reconstruct": {"back_fill": False}}
+    first = run_seeds(scenes, off, [0, 1], progress=lambda m: None)
+    assert sorted(trained) == [(0, "base"), (0, "variant"), (1, "base"), (1, "variant")]
+    assert all(len(p["key"]) == 40 for p in first["points"])
+    trained.clear()
+    again = run_seeds(scenes, off, [0, 1], progress=lambda m: None, reuse=first["points"])
+    assert trained == [] and all(p["reused"] for p in again["points"])
+    assert again["pairs"] == first["pairs"]
+    # another variant: its base runs are the first result's
+    other = run_seeds(scenes, {"reconstruct": {"back_fill": True}}, [0, 1], progress=lambda m: None,
+                      reuse=first["points"])
+    assert sorted(trained) == [(0, "variant"), (1, "variant")]
+    assert [p.get("reused", False) for p in other["points"]] == [True, False, True, False]
+    # another capture (an image re-rendered to another size): everything again
+    trained.clear()
+    (capture / "images" / "train_000.exr").write_bytes(b"x" * 11)
+    run_seeds(scenes, off, [0], progress=lambda m: None, reuse=first["points"])
+    assert sorted(trained) == [(0, "base"), (0, "variant")]
+
+
+def test_code_digest_follows_the_code_a_point_runs_not_the_orchestration(tmp_path):
+    from stages.benchmark.seeds import code_digest
+
+    for rel in ("models/a.py", "stages/benchmark/seeds.py", "stages/benchmark/sweep.py", "configs/scenes/x.yaml"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("v1")
+    base = code_digest(tmp_path)
+    (tmp_path / "stages/benchmark/seeds.py").write_text("v2")  # orchestration: the same points
+    assert code_digest(tmp_path) == base
+    for rel in ("models/a.py", "stages/benchmark/sweep.py", "configs/scenes/x.yaml"):
+        (tmp_path / rel).write_text("v2")
+        assert code_digest(tmp_path) != base, rel
+        (tmp_path / rel).write_text("v1")
+    assert code_digest(tmp_path) == base

@@ -169,6 +169,10 @@ def seeds_main(argv) -> int:
     p.add_argument("--keep", type=Path, default=None, metavar="DIR",
                    help="keep every run's model and renders in DIR/<scene>_<seed>_<base|variant>/ (to compare them "
                    "pixel by pixel); default: a temporary folder, deleted at the end")
+    p.add_argument("--reuse", type=Path, action="append", default=[], metavar="SEEDS.JSON",
+                   help="an earlier result (repeatable): its points made by the same code (models/, stages/, "
+                   "configs/), settings, seed, device and capture are taken instead of trained again (runs "
+                   "reproduce exactly), e.g. the base runs of a second variant")
     a = p.parse_args(argv)
     from stages.benchmark.seeds import format_table, parse_setting, run_seeds
     from stages.benchmark.sweep import config_for_sweep
@@ -186,6 +190,12 @@ def seeds_main(argv) -> int:
             raise ValueError("no seeds: give --seeds, e.g. 0,1")
         if a.keep is not None and a.keep.exists() and not a.keep.is_dir():
             raise ValueError(f"--keep {a.keep}: exists and is not a folder")
+        reuse = []
+        for f in a.reuse:
+            try:
+                reuse += json.loads(f.read_text())["points"]
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                raise ValueError(f"--reuse {f}: not a seeds result ({type(e).__name__}: {e})") from None
         scenes = {}
         for name in [s for s in a.scenes.split(",") if s]:
             config = config_for_sweep(deep_merge(load_config(name, presets=a.preset), both), a.iterations)
@@ -199,7 +209,7 @@ def seeds_main(argv) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     result = run_seeds(scenes, variant, a.seeds, a.device, a.jobs, work_dir=a.keep,
-                       progress=lambda m: print(m, file=sys.stderr, flush=True))
+                       progress=lambda m: print(m, file=sys.stderr, flush=True), reuse=reuse)
     result.update(both=both, iterations=a.iterations, presets=a.preset)
     print(format_table(result))
     write_json_atomic(a.out, result)

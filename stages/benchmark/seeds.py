@@ -14,6 +14,8 @@ training step is host-bound), on a 2-core CPU one or two.
 from __future__ import annotations
 
 import concurrent.futures
+import hashlib
+import json
 import multiprocessing
 import tempfile
 from pathlib import Path
@@ -24,6 +26,42 @@ import numpy as np
 from stages.config import deep_merge
 
 LAYERS = ("final", "specular", "diffuse")
+ROOT = Path(__file__).resolve().parents[2]
+# what a point is made of besides its settings, capture and the libraries: bump when _point computes it otherwise
+POINT_VERSION = 1
+# the orchestration only (which points, in which processes, the table): left out of the code digest
+ORCHESTRATION = ("stages/benchmark/seeds.py", "stages/benchmark/__main__.py")
+
+
+def code_digest(root: Path = ROOT) -> str:
+    """sha1 of the code a point runs: every .py under models/ and stages/ (but ORCHESTRATION) and every .yaml under
+    configs/ (paths and contents), with POINT_VERSION."""
+    h = hashlib.sha1(f"point {POINT_VERSION}".encode())
+    files = sorted(f for pattern, top in (("*.py", "models"), ("*.py", "stages"), ("*.yaml", "configs"))
+                   for f in (root / top).rglob(pattern) if f.relative_to(root).as_posix() not in ORCHESTRATION)
+    for f in files:
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def capture_digest(capture: Path) -> str:
+    """sha1 of a capture's cameras and metadata (transforms.json, capture.yaml) and its images' names and sizes."""
+    capture = Path(capture)
+    h = hashlib.sha1()
+    for name in ("transforms.json", "capture.yaml"):
+        f = capture / name
+        h.update(name.encode() + b"\0" + (f.read_bytes() if f.is_file() else b"") + b"\0")
+    for f in sorted((capture / "images").glob("*")):
+        h.update(f"{f.name} {f.stat().st_size}\0".encode())
+    return h.hexdigest()
+
+
+def run_key(scene: str, seed: int, config: dict, device: str, code: str, capture: str) -> str:
+    """What makes a point the same point: runs reproduce exactly (same inputs, same numbers), so a point with this
+    key can be taken from an earlier result instead of trained again (``reuse``)."""
+    text = json.dumps({"scene": scene, "seed": seed, "config": config, "device": device, "code": code,
+                       "capture": capture}, sort_keys=True, default=str)
+    return hashlib.sha1(text.encode()).hexdigest()
 
 
 def parse_setting(text: str) -> dict:
@@ -67,30 +105,40 @@ def _point(task: dict) -> dict:
 
 
 def run_seeds(scenes: dict[str, tuple[Path, dict]], variant: dict, seeds: list[int], device: str = "cpu",
-              jobs: int = 1, work_dir: Path | None = None, progress: Callable[[str], None] = print) -> dict:
+              jobs: int = 1, work_dir: Path | None = None, progress: Callable[[str], None] = print,
+              reuse: list[dict] | None = None) -> dict:
     """``scenes``: name -> (capture folder, merged config); ``variant``: overrides on top of each config. Trains
-    every (scene, seed) with the base config and with the variant; returns every point and the paired table."""
+    every (scene, seed) with the base config and with the variant; returns every point and the paired table.
+    ``reuse``: points of earlier results; one whose ``key`` (run_key: scene, seed, config, device, code, capture)
+    is a task's is taken instead of training it again (marked ``reused``)."""
     tmp = tempfile.TemporaryDirectory(prefix="seeds_") if work_dir is None else None
     work = Path(tmp.name) if tmp else Path(work_dir)
-    tasks = []
+    code = code_digest()
+    known = {p["key"]: p for p in (reuse or []) if "key" in p}
+    tasks, points = [], []
     for name, (capture, config) in scenes.items():
+        cap = capture_digest(capture)
         for seed in seeds:
             for label, over in (("base", {}), ("variant", variant)):
                 cfg = deep_merge(deep_merge(config, over), {"reconstruct": {"seed": seed}})
+                key = run_key(name, seed, cfg, device, code, cap)
+                if key in known:
+                    points.append({**known[key], "variant": label, "reused": True})
+                    progress(f"[reused] {_describe(points[-1])}")
+                    continue
                 tasks.append({"scene": name, "seed": seed, "variant": label, "config": cfg, "device": device,
-                              "capture": str(capture), "work": str(work / f"{name}_{seed}_{label}")})
-    points = []
+                              "capture": str(capture), "work": str(work / f"{name}_{seed}_{label}"), "key": key})
     try:
         if jobs <= 1:
             for i, task in enumerate(tasks):
-                points.append(_point(task))
+                points.append({**_point(task), "key": task["key"]})
                 progress(f"[{i + 1}/{len(tasks)}] {_describe(points[-1])}")
         else:
             context = multiprocessing.get_context("spawn")  # torch / Warp state is not fork-safe
             with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-                futures = [pool.submit(_point, t) for t in tasks]
+                futures = {pool.submit(_point, t): t for t in tasks}
                 for i, future in enumerate(concurrent.futures.as_completed(futures)):
-                    points.append(future.result())
+                    points.append({**future.result(), "key": futures[future]["key"]})
                     progress(f"[{i + 1}/{len(tasks)}] {_describe(points[-1])}")
     finally:
         if tmp:
