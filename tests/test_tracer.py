@@ -198,6 +198,54 @@ def test_fused_gradients_reach_hooks_and_are_not_copied():
     torch.testing.assert_close(hooked.means.grad, plain.means.grad)  # no hook there: as without
 
 
+def test_sparse_gather_is_the_dense_gather_on_the_gaussians_rays_reached(monkeypatch):
+    """The CPU backward's rows list the Gaussians they reached; gathered over those alone (few reached: a
+    reflection segment, a small batch of rays into a large scene) the gradients are the dense gather's, bit for
+    bit, for trace + backward and trace_fused alike, with a Gaussian both threads reached gathered once; the rows,
+    flags and lists are left clear for the next pass (a second pass gives the same gradients)."""
+    import models.tracer.tracer as tracer_module
+
+    seed = fresh_seed()
+    gs, origins, dirs = scene_and_rays(seed, n=2000, res=24)
+    w = torch.randn(len(dirs), 3, generator=torch.Generator().manual_seed(seed))
+    seen: list[dict] = []
+    original = tracer_module.Tracer._grads_to_torch
+
+    def spy(self, inputs):
+        rows_ = self._rows(inputs[0].shape[0])
+        lists = [rows_.row_ids(k).numpy().copy() for k in range(rows_.threads)]
+        seen.append({"lists": lists, "flags": int(rows_.touched.numpy().sum())})
+        out = original(self, inputs)
+        assert int(rows_.touched.numpy().sum()) == 0 and not rows_.touched_count.numpy().any()
+        assert all(not np.abs(v.numpy()).any() for v in rows_.flat.values())
+        return out
+
+    monkeypatch.setattr(tracer_module.Tracer, "_grads_to_torch", spy)
+    grads = {}
+    for share in (0.0, 2.0):  # every Gaussian visited / only those listed
+        monkeypatch.setattr(tracer_module, "SPARSE_GATHER_SHARE", share)
+        tracer = Tracer(TracerConfig(num_threads=2))
+        for mode in ("autograd", "fused", "fused again"):
+            g = gs.to().requires_grad_()
+            if mode == "autograd":
+                (tracer.trace(origins, dirs, g).diffuse * w).sum().backward()
+            else:
+                tracer.trace_fused(origins, dirs, g, {"diffuse": w}, {"diffuse": 1.0})
+            grads[share, mode] = {k: v.grad.clone() for k, v in g.params().items()}
+    a, b = seen[-1]["lists"]
+    reached = np.union1d(a, b)
+    assert len(a) and len(b) and len(np.intersect1d(a, b)), f"seed {seed}: no Gaussian both threads reached"
+    assert 0 < len(reached) < len(gs) and seen[-1]["flags"] == len(a) + len(b)
+    assert len(np.unique(a)) == len(a) and len(np.unique(b)) == len(b)
+    for mode in ("autograd", "fused", "fused again"):
+        for k, dense in grads[0.0, mode].items():
+            assert torch.equal(grads[2.0, mode][k], dense), f"seed {seed}: {mode} {k}"
+        untouched = np.setdiff1d(np.arange(len(gs)), reached)
+        assert not grads[2.0, mode]["diffuse"][untouched].any()
+    for k in grads[0.0, "fused"]:
+        assert torch.equal(grads[2.0, "fused"][k], grads[2.0, "fused again"][k])
+
+
 def test_one_and_two_threads_identical():
     seed = fresh_seed()
     gs, origins, dirs = scene_and_rays(seed, n=300, res=32)

@@ -1,6 +1,7 @@
-"""Gather kernel: the backward's per-thread gradient rows summed, and the geometry part taken from the activated
+"""Gather kernels: the backward's per-thread gradient rows summed, and the geometry part taken from the activated
 values (M = S^-1 R^T, opacity) to the raw parameters (quaternion wxyz before normalisation, log-scales, opacity
-logit), in one pass over the Gaussians that also clears the rows for the next backward.
+logit), in one pass over the Gaussians (or over those the rows list as touched) that also clears the rows for the
+next backward.
 
 M[r][c] = R[c][r] / s_r, so dL/dlog s_r = -sum_c G_M[r][c] M[r][c] and
 dL/dR[c][r] = G_M[r][c] / s_r; R(q) as activations.quats_to_rotmats, q = q_raw / |q_raw|.
@@ -43,21 +44,20 @@ def rotation(qr: wp.vec4) -> wp.mat33:
                     2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
 
 
-@wp.kernel
-def gather_kernel(n: int, threads: int, start: int,
-                  quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
-                  opacity_logits: wp.array(dtype=float),
-                  rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
-                  rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
-                  rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
-                  rows_f0: wp.array(dtype=wp.vec3),
-                  g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
-                  g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
-                  g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
-                  g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
-    """Gaussian i = start + tid: the sum over ``threads`` rows of n (row k holds Gaussian i at k * n + i), each row
-    entry set back to zero; then the raw-parameter gradients."""
-    i = wp.tid() + start
+@wp.func
+def gather_one(i: int, n: int, threads: int,
+               quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
+               opacity_logits: wp.array(dtype=float),
+               rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
+               rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
+               rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
+               rows_f0: wp.array(dtype=wp.vec3),
+               g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
+               g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
+               g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
+               g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+    """Gaussian i: the sum over ``threads`` rows of n (row k holds Gaussian i at k * n + i), each row entry set
+    back to zero; then the raw-parameter gradients."""
     gmean = wp.vec3(0.0)
     gm = wp.mat33(0.0)
     gop = float(0.0)
@@ -110,3 +110,52 @@ def gather_kernel(n: int, threads: int, start: int,
     # float32 for x > ~16.6 (and lose ~6e-8 / (1 - s) relative precision before that)
     e = wp.exp(-wp.abs(opacity_logits[i]))
     g_logits[i] = gop * e / ((1.0 + e) * (1.0 + e))
+
+
+@wp.kernel
+def gather_kernel(n: int, threads: int, start: int,
+                  quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
+                  opacity_logits: wp.array(dtype=float),
+                  rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
+                  rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
+                  rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
+                  rows_f0: wp.array(dtype=wp.vec3),
+                  g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
+                  g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
+                  g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
+                  g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+    """Every Gaussian, i = start + tid (a dense gather)."""
+    gather_one(wp.tid() + start, n, threads, quats, log_scales, opacity_logits, rows_means, rows_w2l,
+               rows_opacity, rows_diffuse, rows_normal, rows_roughness, rows_f0, g_means, g_quats, g_log_scales,
+               g_logits, g_diffuse, g_normal, g_roughness, g_f0)
+
+
+@wp.kernel
+def gather_touched_kernel(n: int, threads: int, row: int, ids: wp.array(dtype=wp.int32),
+                          touched: wp.array(dtype=wp.int32),
+                          quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
+                          opacity_logits: wp.array(dtype=float),
+                          rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
+                          rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
+                          rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
+                          rows_f0: wp.array(dtype=wp.vec3),
+                          g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
+                          g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
+                          g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
+                          g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+    """The Gaussians row ``row`` lists as touched (``ids``; ``touched`` = every row's flags, flat like the rows),
+    each gathered by the first row that flags it, so once, whichever launch runs first; the outputs of the
+    Gaussians no row touched are left as they are (zero)."""
+    i = ids[wp.tid()]
+    for k in range(row):
+        if touched[k * n + i] != 0:
+            return
+    gather_one(i, n, threads, quats, log_scales, opacity_logits, rows_means, rows_w2l, rows_opacity,
+               rows_diffuse, rows_normal, rows_roughness, rows_f0, g_means, g_quats, g_log_scales, g_logits,
+               g_diffuse, g_normal, g_roughness, g_f0)
+
+
+@wp.kernel
+def clear_touched_kernel(ids: wp.array(dtype=wp.int32), touched: wp.array(dtype=wp.int32)):
+    """One row's flags back to zero (its listed Gaussians)."""
+    touched[ids[wp.tid()]] = 0

@@ -41,6 +41,12 @@ def backward_ray(ray: int, o: wp.vec3, d: wp.vec3, g: GaussianData, prm: TracePa
     for k in range(n_blend):
         i = n_blend - 1 - k
         gid = rep.ids[ray, i]
+        if grads.track != 0:
+            if grads.touched[gid] == 0:  # (the row is this launch's alone: no atomics needed)
+                grads.touched[gid] = 1
+                c = grads.touched_count[0]
+                grads.touched_ids[c] = gid
+                grads.touched_count[0] = c + 1
         a = rep.alpha[ray, i]
         t = rep.t[ray, i]
         t_i = rep.trans[ray, i]

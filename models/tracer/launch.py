@@ -124,28 +124,45 @@ class GradRows:
     """The backward's gradient accumulators wrt the activated values: one row of n entries per CPU thread (CPU
     atomics are not safe across concurrent launches), flat [threads * n] per field. Kept by the tracer between
     backward passes: the gather kernel (models/tracer/chain.py) that sums the rows also sets them back to zero, so
-    no pass clears (or allocates) 23 floats per Gaussian and thread, and nothing adds rows in torch."""
+    no pass clears (or allocates) 23 floats per Gaussian and thread, and nothing adds rows in torch.
+
+    On a CPU each row also flags and lists the Gaussians it received a gradient for (``track``): a backward that
+    reaches few of many Gaussians (a reflection segment, 2,304 rays into 1M) is gathered over those alone."""
 
     def __init__(self, n: int, threads: int, device: str):
         self.n = n
+        self.threads = threads
+        self.track = not str(device).startswith("cuda")
         self.flat = {k: wp.zeros(threads * n, dtype=dt, device=device) for k, dt in GRAD_FIELDS.items()}
-        self.structs = [grads_struct({k: v[i * n:(i + 1) * n] for k, v in self.flat.items()})
+        self.touched = wp.zeros(threads * n, dtype=wp.int32, device=device)
+        self.touched_ids = wp.zeros(threads * n, dtype=wp.int32, device=device)
+        self.touched_count = wp.zeros(threads, dtype=wp.int32, device=device)
+        self.structs = [grads_struct({k: v[i * n:(i + 1) * n] for k, v in self.flat.items()},
+                                     self.touched[i * n:(i + 1) * n], self.touched_ids[i * n:(i + 1) * n],
+                                     self.touched_count[i:i + 1], self.track)
                         for i in range(threads)]
         self.dirty = False  # handed to a launch and not gathered since (an error in between): clear before reuse
 
     def take(self) -> list:
         """The per-thread structs, all zero."""
         if self.dirty:
-            for v in self.flat.values():
+            for v in (*self.flat.values(), self.touched, self.touched_count):
                 v.zero_()
         self.dirty = True
         return self.structs
 
+    def row_ids(self, k: int) -> wp.array:
+        """The Gaussians row k flagged (tracked rows)."""
+        count = int(self.touched_count.numpy()[k])
+        return self.touched_ids[k * self.n:k * self.n + count]
 
-def grads_struct(arrays: dict[str, wp.array]) -> GaussianGrads:
+
+def grads_struct(arrays: dict[str, wp.array], touched: wp.array, touched_ids: wp.array, touched_count: wp.array,
+                 track: bool) -> GaussianGrads:
     s = GaussianGrads()
     for k in GRAD_FIELDS:
         setattr(s, k, arrays[k])
+    s.touched, s.touched_ids, s.touched_count, s.track = touched, touched_ids, touched_count, int(track)
     return s
 
 

@@ -86,7 +86,7 @@ class RayGrads:
 
 @wp.struct
 class GaussianGrads:
-    """dLoss/d(activated values), N entries each, accumulated with atomics."""
+    """dLoss/d(activated values), N entries each, accumulated with atomics; which of them were reached."""
 
     means: wp.array(dtype=wp.vec3)
     w2l: wp.array(dtype=wp.mat33)
@@ -95,6 +95,13 @@ class GaussianGrads:
     normal: wp.array(dtype=wp.vec3)
     roughness: wp.array(dtype=float)
     f0: wp.array(dtype=wp.vec3)
+    # track != 0 (one CPU thread's row, filled by one launch at a time): each Gaussian the row first receives a
+    # gradient for is flagged in `touched` and listed in `touched_ids` (touched_count[0] of them), so the gather
+    # visits those alone (launch.GradRows); 0 (CUDA: one row, concurrent threads): not kept, a dense gather
+    touched: wp.array(dtype=wp.int32)
+    touched_ids: wp.array(dtype=wp.int32)
+    touched_count: wp.array(dtype=wp.int32)
+    track: int
 
 
 @wp.struct

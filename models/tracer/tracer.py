@@ -23,7 +23,7 @@ from models.gaussians.scene import PARAM_SHAPES, Gaussians
 from models.profiling import NO_TIMER
 from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
-from models.tracer.chain import gather_kernel
+from models.tracer.chain import clear_touched_kernel, gather_kernel, gather_touched_kernel
 from models.tracer.checks import ZERO_DIRS_MESSAGE, DeferredChecks
 from models.tracer.config import TRAVERSALS, TracerConfig
 from models.tracer.interop import is_alias, to_torch, to_warp, torch_device_for
@@ -50,6 +50,10 @@ from models.tracer.wide_bvh import WideTree, empty_wide
 log = logging.getLogger(__name__)
 # rays traced since the last update() from which auto octant trees pay for their refits (Tracer._octants_for)
 OCTANT_RAYS = 65536
+# a CPU backward whose rows flagged fewer than this share of the Gaussians is gathered over those alone (the dense
+# gather costs ~20-40 ns per Gaussian and thread whether a ray reached it or not; the sparse one visits in the
+# order the rays first reached them; measured: README, twenty-fifth session)
+SPARSE_GATHER_SHARE = 0.25
 
 
 def _accumulate_grads(pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> None:
@@ -532,28 +536,47 @@ class Tracer:
 
     def _grads_to_torch(self, inputs) -> list[torch.Tensor]:
         """The backward's per-thread rows (wrt the activated values) -> gradients wrt the raw parameters
-        (PARAM_SHAPES order), in one gather launch per CPU thread over its Gaussians (no sums in torch); the rows
-        are left zero for the next pass."""
+        (PARAM_SHAPES order), in one gather launch per CPU thread (no sums in torch); the rows are left zero for
+        the next pass. On a CPU, when the rows flagged few of the Gaussians (under ``SPARSE_GATHER_SHARE`` of
+        them), each thread's launch visits the Gaussians its row listed and the others' gradients are zero
+        without a visit; otherwise each visits its share of every Gaussian."""
         means, quats, log_scales, logits = inputs[:4]
         n = means.shape[0]
         tdev = torch_device_for(self.device)
         dev = tdev or torch.device("cpu")
+        rows_ = self._rows(n) if n else None
+        ids = [rows_.row_ids(k) for k in range(rows_.threads)] if n and rows_.track else None
+        sparse = ids is not None and sum(len(a) for a in ids) < SPARSE_GATHER_SHARE * n
         outs = [torch.empty((n, *PARAM_SHAPES[k]), dtype=torch.float32, device=dev) for k in PARAM_SHAPES]
+        if sparse:  # the gather leaves the Gaussians no ray reached alone: zero first, a share per CPU thread
+            with self.timer.section("tracer_backward"):
+                run_chunks(self._pool, [(lambda a=a, b=b: [t[a:b].zero_() for t in outs])
+                                        for a, b in (ray_chunks(n, self._threads) if n >= 4096 * self._threads
+                                                     else [(0, n)])])
         if n:
-            rows_ = self._rows(n)
             dtypes = [{(): wp.float32, (3,): wp.vec3, (4,): wp.vec4}[shape] for shape in PARAM_SHAPES.values()]
             arrays = [wp.from_torch(t, dtype=dt, requires_grad=False) if tdev is not None
                       else wp.empty(n, dtype=dt, device=self.device) for t, dt in zip(outs, dtypes)]
             fixed = [n, self._threads]
             inputs_gather = [self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3),
                              self._param_array(logits, float), *(rows_.flat[k] for k in GRAD_FIELDS), *arrays]
-            # one launch per CPU thread over its Gaussians (a CPU launch runs on one core)
-            parts = ray_chunks(n, self._threads) if n >= 4096 * self._threads else [(0, n)]
+            if sparse:  # one launch per row over the Gaussians it listed (each gathered by the first that did)
+                jobs = [(lambda k=k, a=a: wp.launch(gather_touched_kernel, dim=len(a), device=self.device,
+                                                    inputs=[*fixed, k, a, rows_.touched, *inputs_gather]))
+                        for k, a in enumerate(ids) if len(a)]
+            else:  # one launch per CPU thread over its Gaussians (a CPU launch runs on one core)
+                parts = ray_chunks(n, self._threads) if n >= 4096 * self._threads else [(0, n)]
+                jobs = [(lambda a=a, b=b: wp.launch(gather_kernel, dim=b - a, device=self.device,
+                                                    inputs=[*fixed, a, *inputs_gather]))
+                        for a, b in parts]
             with self.timer.section("tracer_backward"):
-                run_chunks(self._pool, [
-                    (lambda a=a, b=b: wp.launch(gather_kernel, dim=b - a, device=self.device,
-                                                inputs=[*fixed, a, *inputs_gather]))
-                    for a, b in parts])
+                run_chunks(self._pool, jobs)
+                if ids is not None:  # the flags back to zero (each row its own, after every gather has read them)
+                    run_chunks(self._pool, [
+                        (lambda k=k, a=a: wp.launch(clear_touched_kernel, dim=len(a), device=self.device,
+                                                    inputs=[a, rows_.touched[k * n:(k + 1) * n]]))
+                        for k, a in enumerate(ids) if len(a)])
+                    rows_.touched_count.zero_()
             rows_.dirty = False
             if tdev is None:
                 outs = [to_torch(a, dev) for a in arrays]
