@@ -44,18 +44,33 @@ def rotation(qr: wp.vec4) -> wp.mat33:
                     2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
 
 
+@wp.struct
+class GatherArgs:
+    """The gather's arrays: the raw geometry parameters, the per-thread rows (flat, as launch.GradRows) and the
+    raw-parameter gradients it writes (PARAM_SHAPES order after the rows)."""
+
+    quats: wp.array(dtype=wp.vec4)
+    log_scales: wp.array(dtype=wp.vec3)
+    opacity_logits: wp.array(dtype=float)
+    rows_means: wp.array(dtype=wp.vec3)
+    rows_w2l: wp.array(dtype=wp.mat33)
+    rows_opacity: wp.array(dtype=float)
+    rows_diffuse: wp.array(dtype=wp.vec3)
+    rows_normal: wp.array(dtype=wp.vec3)
+    rows_roughness: wp.array(dtype=float)
+    rows_f0: wp.array(dtype=wp.vec3)
+    g_means: wp.array(dtype=wp.vec3)
+    g_quats: wp.array(dtype=wp.vec4)
+    g_log_scales: wp.array(dtype=wp.vec3)
+    g_logits: wp.array(dtype=float)
+    g_diffuse: wp.array(dtype=wp.vec3)
+    g_normal: wp.array(dtype=wp.vec3)
+    g_roughness: wp.array(dtype=float)
+    g_f0: wp.array(dtype=wp.vec3)
+
+
 @wp.func
-def gather_one(i: int, n: int, threads: int,
-               quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
-               opacity_logits: wp.array(dtype=float),
-               rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
-               rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
-               rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
-               rows_f0: wp.array(dtype=wp.vec3),
-               g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
-               g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
-               g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
-               g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+def gather_one(i: int, n: int, threads: int, a: GatherArgs):
     """Gaussian i: the sum over ``threads`` rows of n (row k holds Gaussian i at k * n + i), each row entry set
     back to zero; then the raw-parameter gradients."""
     gmean = wp.vec3(0.0)
@@ -67,34 +82,34 @@ def gather_one(i: int, n: int, threads: int,
     gf0 = wp.vec3(0.0)
     for k in range(threads):
         j = k * n + i
-        gmean += rows_means[j]
-        gm += rows_w2l[j]
-        gop += rows_opacity[j]
-        gdif += rows_diffuse[j]
-        gnor += rows_normal[j]
-        grou += rows_roughness[j]
-        gf0 += rows_f0[j]
-        rows_means[j] = wp.vec3(0.0)
-        rows_w2l[j] = wp.mat33(0.0)
-        rows_opacity[j] = 0.0
-        rows_diffuse[j] = wp.vec3(0.0)
-        rows_normal[j] = wp.vec3(0.0)
-        rows_roughness[j] = 0.0
-        rows_f0[j] = wp.vec3(0.0)
-    g_means[i] = gmean
-    g_diffuse[i] = gdif
-    g_normal[i] = gnor
-    g_roughness[i] = grou
-    g_f0[i] = gf0
+        gmean += a.rows_means[j]
+        gm += a.rows_w2l[j]
+        gop += a.rows_opacity[j]
+        gdif += a.rows_diffuse[j]
+        gnor += a.rows_normal[j]
+        grou += a.rows_roughness[j]
+        gf0 += a.rows_f0[j]
+        a.rows_means[j] = wp.vec3(0.0)
+        a.rows_w2l[j] = wp.mat33(0.0)
+        a.rows_opacity[j] = 0.0
+        a.rows_diffuse[j] = wp.vec3(0.0)
+        a.rows_normal[j] = wp.vec3(0.0)
+        a.rows_roughness[j] = 0.0
+        a.rows_f0[j] = wp.vec3(0.0)
+    a.g_means[i] = gmean
+    a.g_diffuse[i] = gdif
+    a.g_normal[i] = gnor
+    a.g_roughness[i] = grou
+    a.g_f0[i] = gf0
     if gm == wp.mat33(0.0) and gop == 0.0:
         # no ray of this trace reached the Gaussian (a reflection segment reaches few): its gradients are zero
-        g_quats[i] = wp.vec4(0.0)
-        g_log_scales[i] = wp.vec3(0.0)
-        g_logits[i] = 0.0
+        a.g_quats[i] = wp.vec4(0.0)
+        a.g_log_scales[i] = wp.vec3(0.0)
+        a.g_logits[i] = 0.0
         return
-    qr = quats[i]
+    qr = a.quats[i]
     rot = rotation(qr)
-    ls = log_scales[i]
+    ls = a.log_scales[i]
     inv_s = wp.vec3(wp.exp(-ls[0]), wp.exp(-ls[1]), wp.exp(-ls[2]))
     gls = wp.vec3(0.0)
     gr = wp.mat33(0.0)  # dL/dR
@@ -104,45 +119,23 @@ def gather_one(i: int, n: int, threads: int,
             acc += gm[r, c] * rot[c, r] * inv_s[r]
             gr[c, r] = gm[r, c] * inv_s[r]
         gls[r] = -acc
-    g_quats[i] = chain_quat(qr, gr)
-    g_log_scales[i] = gls
+    a.g_quats[i] = chain_quat(qr, gr)
+    a.g_log_scales[i] = gls
     # dsigmoid/dx = s (1 - s) = e / (1 + e)^2 with e = exp(-|x|): 1 - s would round to 0 in
     # float32 for x > ~16.6 (and lose ~6e-8 / (1 - s) relative precision before that)
-    e = wp.exp(-wp.abs(opacity_logits[i]))
-    g_logits[i] = gop * e / ((1.0 + e) * (1.0 + e))
+    e = wp.exp(-wp.abs(a.opacity_logits[i]))
+    a.g_logits[i] = gop * e / ((1.0 + e) * (1.0 + e))
 
 
 @wp.kernel
-def gather_kernel(n: int, threads: int, start: int,
-                  quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
-                  opacity_logits: wp.array(dtype=float),
-                  rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
-                  rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
-                  rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
-                  rows_f0: wp.array(dtype=wp.vec3),
-                  g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
-                  g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
-                  g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
-                  g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+def gather_kernel(n: int, threads: int, start: int, a: GatherArgs):
     """Every Gaussian, i = start + tid (a dense gather)."""
-    gather_one(wp.tid() + start, n, threads, quats, log_scales, opacity_logits, rows_means, rows_w2l,
-               rows_opacity, rows_diffuse, rows_normal, rows_roughness, rows_f0, g_means, g_quats, g_log_scales,
-               g_logits, g_diffuse, g_normal, g_roughness, g_f0)
+    gather_one(wp.tid() + start, n, threads, a)
 
 
 @wp.kernel
 def gather_touched_kernel(n: int, threads: int, row: int, ids: wp.array(dtype=wp.int32),
-                          touched: wp.array(dtype=wp.int32),
-                          quats: wp.array(dtype=wp.vec4), log_scales: wp.array(dtype=wp.vec3),
-                          opacity_logits: wp.array(dtype=float),
-                          rows_means: wp.array(dtype=wp.vec3), rows_w2l: wp.array(dtype=wp.mat33),
-                          rows_opacity: wp.array(dtype=float), rows_diffuse: wp.array(dtype=wp.vec3),
-                          rows_normal: wp.array(dtype=wp.vec3), rows_roughness: wp.array(dtype=float),
-                          rows_f0: wp.array(dtype=wp.vec3),
-                          g_means: wp.array(dtype=wp.vec3), g_quats: wp.array(dtype=wp.vec4),
-                          g_log_scales: wp.array(dtype=wp.vec3), g_logits: wp.array(dtype=float),
-                          g_diffuse: wp.array(dtype=wp.vec3), g_normal: wp.array(dtype=wp.vec3),
-                          g_roughness: wp.array(dtype=float), g_f0: wp.array(dtype=wp.vec3)):
+                          touched: wp.array(dtype=wp.int32), a: GatherArgs):
     """The Gaussians row ``row`` lists as touched (``ids``; ``touched`` = every row's flags, flat like the rows),
     each gathered by the first row that flags it, so once, whichever launch runs first; the outputs of the
     Gaussians no row touched are left as they are (zero)."""
@@ -150,9 +143,7 @@ def gather_touched_kernel(n: int, threads: int, row: int, ids: wp.array(dtype=wp
     for k in range(row):
         if touched[k * n + i] != 0:
             return
-    gather_one(i, n, threads, quats, log_scales, opacity_logits, rows_means, rows_w2l, rows_opacity,
-               rows_diffuse, rows_normal, rows_roughness, rows_f0, g_means, g_quats, g_log_scales, g_logits,
-               g_diffuse, g_normal, g_roughness, g_f0)
+    gather_one(i, n, threads, a)
 
 
 @wp.kernel
