@@ -202,7 +202,8 @@ def test_sparse_gather_is_the_dense_gather_on_the_gaussians_rays_reached(monkeyp
     """The CPU backward's rows list the Gaussians they reached; gathered over those alone (few reached: a
     reflection segment, a small batch of rays into a large scene) the gradients are the dense gather's, bit for
     bit, for trace + backward and trace_fused alike, with a Gaussian both threads reached gathered once; the rows,
-    flags and lists are left clear for the next pass (a second pass gives the same gradients)."""
+    flags and lists are left clear for the next pass (a second pass gives the same gradients); a backward with
+    more hits than the sparse share of the Gaussians does not list them."""
     import models.tracer.tracer as tracer_module
 
     seed = fresh_seed()
@@ -232,6 +233,7 @@ def test_sparse_gather_is_the_dense_gather_on_the_gaussians_rays_reached(monkeyp
             else:
                 tracer.trace_fused(origins, dirs, g, {"diffuse": w}, {"diffuse": 1.0})
             grads[share, mode] = {k: v.grad.clone() for k, v in g.params().items()}
+    assert seen[0]["flags"] == 0  # a backward whose hits outnumber the share lists nothing (dense gather anyway)
     a, b = seen[-1]["lists"]
     reached = np.union1d(a, b)
     assert len(a) and len(b) and len(np.intersect1d(a, b)), f"seed {seed}: no Gaussian both threads reached"

@@ -142,13 +142,17 @@ class GradRows:
                                      self.touched_count[i:i + 1], self.track)
                         for i in range(threads)]
         self.dirty = False  # handed to a launch and not gathered since (an error in between): clear before reuse
+        self.tracking = False  # the last take() listed what the rows reach
 
-    def take(self) -> list:
-        """The per-thread structs, all zero."""
+    def take(self, track: bool = True) -> list:
+        """The per-thread structs, all zero; listing what they reach when ``track`` (and the device can)."""
         if self.dirty:
             for v in (*self.flat.values(), self.touched, self.touched_count):
                 v.zero_()
         self.dirty = True
+        self.tracking = self.track and track
+        for s in self.structs:
+            s.track = int(self.tracking)
         return self.structs
 
     def row_ids(self, k: int) -> wp.array:

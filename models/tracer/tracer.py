@@ -509,7 +509,11 @@ class Tracer:
         n_rays = state["o"].shape[0]
         n = inputs[0].shape[0]
         stripes = thread_stripes(n_rays, self._threads)
-        grads = self._rows(n).take()
+        rows_ = self._rows(n)
+        # the rows list the Gaussians they reach only when the gather may use the list (no more than the hits)
+        track = rows_.track and int(to_torch(state["outs"]["blended"], torch.device("cpu")).sum()) < (
+            SPARSE_GATHER_SHARE * n)
+        grads = rows_.take(track=track)
         if n_rays and n and self.bvh.count > 0:
             up = {k: to_warp(upstream[k], dt, self.device) for k, dt in RAY_GRAD_FIELDS.items()}
             saved_cap, self.capacity = self.capacity, state["capacity"]
@@ -545,7 +549,7 @@ class Tracer:
         tdev = torch_device_for(self.device)
         dev = tdev or torch.device("cpu")
         rows_ = self._rows(n) if n else None
-        ids = [rows_.row_ids(k) for k in range(rows_.threads)] if n and rows_.track else None
+        ids = [rows_.row_ids(k) for k in range(rows_.threads)] if n and rows_.tracking else None
         sparse = ids is not None and sum(len(a) for a in ids) < SPARSE_GATHER_SHARE * n
         outs = [torch.empty((n, *PARAM_SHAPES[k]), dtype=torch.float32, device=dev) for k in PARAM_SHAPES]
         if sparse:  # the gather leaves the Gaussians no ray reached alone: zero first, a share per CPU thread
