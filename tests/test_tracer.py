@@ -989,7 +989,7 @@ def test_gather_kernel_sums_thread_rows_chains_to_raw_parameters_and_clears_rows
     dL/dopacity taken through world_to_local / sigmoid by autograd to the raw quaternion, log-scales and logit;
     a Gaussian no row touched gets exact zeros, and every row is zero afterwards (the next pass reuses them)."""
     from models.gaussians import opacities_from_logits, world_to_local
-    from models.tracer.chain import gather_kernel
+    from models.tracer.chain import gather_args, gather_kernel
     from models.tracer.launch import GRAD_FIELDS
 
     seed = fresh_seed()
@@ -1006,10 +1006,10 @@ def test_gather_kernel_sums_thread_rows_chains_to_raw_parameters_and_clears_rows
                         .float().numpy(), dtype=GRAD_FIELDS[k], device="cpu") for k in widths}
     outs = [wp.zeros(n, dtype=dt, device="cpu") for dt in (wp.vec3, wp.vec4, wp.vec3, float, wp.vec3, wp.vec3, float,
                                                             wp.vec3)]
-    wp.launch(gather_kernel, dim=n - start, device="cpu",
-              inputs=[n, threads, start, wp.array(quats.float().numpy(), dtype=wp.vec4),
-                      wp.array(log_scales.float().numpy(), dtype=wp.vec3), wp.array(logits.float().numpy(), dtype=float),
-                      *(flat[k] for k in GRAD_FIELDS), *outs])
+    args = gather_args(wp.array(quats.float().numpy(), dtype=wp.vec4),
+                       wp.array(log_scales.float().numpy(), dtype=wp.vec3),
+                       wp.array(logits.float().numpy(), dtype=float), {k: flat[k] for k in GRAD_FIELDS}, outs)
+    wp.launch(gather_kernel, dim=n - start, device="cpu", inputs=[n, threads, start, args])
     got = [torch.from_numpy(o.numpy()).double().reshape(n, -1) for o in outs]
 
     total = {k: v.sum(0) for k, v in rows.items()}

@@ -69,6 +69,22 @@ class GatherArgs:
     g_f0: wp.array(dtype=wp.vec3)
 
 
+GRAD_OUTPUTS = ("means", "quats", "log_scales", "logits", "diffuse", "normal", "roughness", "f0")
+
+
+def gather_args(quats: wp.array, log_scales: wp.array, opacity_logits: wp.array, rows: dict[str, wp.array],
+                grads: list[wp.array]) -> GatherArgs:
+    """The struct of one gather: ``rows`` by launch.GRAD_FIELDS name, ``grads`` in GRAD_OUTPUTS (= PARAM_SHAPES)
+    order."""
+    a = GatherArgs()
+    a.quats, a.log_scales, a.opacity_logits = quats, log_scales, opacity_logits
+    for k, v in rows.items():
+        setattr(a, f"rows_{k}", v)
+    for k, v in zip(GRAD_OUTPUTS, grads, strict=True):
+        setattr(a, f"g_{k}", v)
+    return a
+
+
 @wp.func
 def gather_one(i: int, n: int, threads: int, a: GatherArgs):
     """Gaussian i: the sum over ``threads`` rows of n (row k holds Gaussian i at k * n + i), each row entry set

@@ -23,12 +23,11 @@ from models.gaussians.scene import PARAM_SHAPES, Gaussians
 from models.profiling import NO_TIMER
 from models.tracer.autograd import TraceFunction
 from models.tracer.bvh import GaussianBvh
-from models.tracer.chain import GatherArgs, clear_touched_kernel, gather_kernel, gather_touched_kernel
+from models.tracer.chain import clear_touched_kernel, gather_args, gather_kernel, gather_touched_kernel
 from models.tracer.checks import ZERO_DIRS_MESSAGE, DeferredChecks
 from models.tracer.config import TRAVERSALS, TracerConfig
 from models.tracer.interop import is_alias, to_torch, to_warp, torch_device_for
 from models.tracer.launch import (
-    GRAD_FIELDS,
     RAY_GRAD_FIELDS,
     GradRows,
     LaunchViews,
@@ -562,13 +561,8 @@ class Tracer:
             arrays = [wp.from_torch(t, dtype=dt, requires_grad=False) if tdev is not None
                       else wp.empty(n, dtype=dt, device=self.device) for t, dt in zip(outs, dtypes)]
             fixed = [n, self._threads]
-            args = GatherArgs()
-            args.quats, args.log_scales = self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3)
-            args.opacity_logits = self._param_array(logits, float)
-            for k in GRAD_FIELDS:
-                setattr(args, f"rows_{k}", rows_.flat[k])
-            for k, a in zip(("means", "quats", "log_scales", "logits", "diffuse", "normal", "roughness", "f0"), arrays):
-                setattr(args, f"g_{k}", a)
+            args = gather_args(self._param_array(quats, wp.vec4), self._param_array(log_scales, wp.vec3),
+                               self._param_array(logits, float), rows_.flat, arrays)
             if sparse:  # one launch per row over the Gaussians it listed (each gathered by the first that did)
                 jobs = [(lambda k=k, a=a: wp.launch(gather_touched_kernel, dim=len(a), device=self.device,
                                                     inputs=[*fixed, k, a, rows_.touched, args]))
