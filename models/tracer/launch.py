@@ -139,7 +139,7 @@ class GradRows:
         self.touched_count = wp.zeros(threads, dtype=wp.int32, device=device)
         self.structs = [grads_struct({k: v[i * n:(i + 1) * n] for k, v in self.flat.items()},
                                      self.touched[i * n:(i + 1) * n], self.touched_ids[i * n:(i + 1) * n],
-                                     self.touched_count[i:i + 1], self.track)
+                                     self.touched_count[i:i + 1])
                         for i in range(threads)]
         self.dirty = False  # handed to a launch and not gathered since (an error in between): clear before reuse
         self.tracking = False  # the last take() listed what the rows reach
@@ -161,12 +161,13 @@ class GradRows:
         return self.touched_ids[k * self.n:k * self.n + count]
 
 
-def grads_struct(arrays: dict[str, wp.array], touched: wp.array, touched_ids: wp.array, touched_count: wp.array,
-                 track: bool) -> GaussianGrads:
+def grads_struct(arrays: dict[str, wp.array], touched: wp.array, touched_ids: wp.array,
+                 touched_count: wp.array) -> GaussianGrads:
+    """One row's struct; it lists nothing until GradRows.take() says so (``track``)."""
     s = GaussianGrads()
     for k in GRAD_FIELDS:
         setattr(s, k, arrays[k])
-    s.touched, s.touched_ids, s.touched_count, s.track = touched, touched_ids, touched_count, int(track)
+    s.touched, s.touched_ids, s.touched_count, s.track = touched, touched_ids, touched_count, 0
     return s
 
 

@@ -50,8 +50,9 @@ log = logging.getLogger(__name__)
 # rays traced since the last update() from which auto octant trees pay for their refits (Tracer._octants_for)
 OCTANT_RAYS = 65536
 # a CPU backward whose rows flagged fewer than this share of the Gaussians is gathered over those alone (the dense
-# gather costs ~20-40 ns per Gaussian and thread whether a ray reached it or not; the sparse one visits in the
-# order the rays first reached them; measured: README, twenty-fifth session)
+# gather reads and clears every Gaussian's row whether a ray reached it or not; the sparse one visits in the order
+# the rays first reached them, so randomly). Chosen, not tuned: (d) 1M Gaussians at ~4 % reached gains, (a)-(c)
+# (most reached) keep the dense gather (README, twenty-fifth session)
 SPARSE_GATHER_SHARE = 0.25
 
 
@@ -551,11 +552,11 @@ class Tracer:
         ids = [rows_.row_ids(k) for k in range(rows_.threads)] if n and rows_.tracking else None
         sparse = ids is not None and sum(len(a) for a in ids) < SPARSE_GATHER_SHARE * n
         outs = [torch.empty((n, *PARAM_SHAPES[k]), dtype=torch.float32, device=dev) for k in PARAM_SHAPES]
+        # each CPU thread's share of the Gaussians (a CPU launch runs on one core)
+        parts = ray_chunks(n, self._threads) if n >= 4096 * self._threads else [(0, n)]
         if sparse:  # the gather leaves the Gaussians no ray reached alone: zero first, a share per CPU thread
             with self.timer.section("tracer_backward"):
-                run_chunks(self._pool, [(lambda a=a, b=b: [t[a:b].zero_() for t in outs])
-                                        for a, b in (ray_chunks(n, self._threads) if n >= 4096 * self._threads
-                                                     else [(0, n)])])
+                run_chunks(self._pool, [(lambda a=a, b=b: [t[a:b].zero_() for t in outs]) for a, b in parts])
         if n:
             dtypes = [{(): wp.float32, (3,): wp.vec3, (4,): wp.vec4}[shape] for shape in PARAM_SHAPES.values()]
             arrays = [wp.from_torch(t, dtype=dt, requires_grad=False) if tdev is not None
@@ -567,8 +568,7 @@ class Tracer:
                 jobs = [(lambda k=k, a=a: wp.launch(gather_touched_kernel, dim=len(a), device=self.device,
                                                     inputs=[*fixed, k, a, rows_.touched, args]))
                         for k, a in enumerate(ids) if len(a)]
-            else:  # one launch per CPU thread over its Gaussians (a CPU launch runs on one core)
-                parts = ray_chunks(n, self._threads) if n >= 4096 * self._threads else [(0, n)]
+            else:  # one launch per CPU thread over its share of every Gaussian
                 jobs = [(lambda a=a, b=b: wp.launch(gather_kernel, dim=b - a, device=self.device,
                                                     inputs=[*fixed, a, args]))
                         for a, b in parts]
