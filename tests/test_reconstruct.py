@@ -335,6 +335,37 @@ def test_non_finite_gradients_skip_the_update_and_stop_training(tmp_path):
     assert trainer.step <= FINITE_CHECK_EVERY
 
 
+def test_max_thickness_flattens_thick_gaussians_inside_the_scene_only():
+    """``max_thickness``: after a step, a Gaussian inside the initial box whose thinnest axis is thicker than the
+    cap has that axis (and only it) at the cap; one outside the box (far field), a fixed one and the thin ones
+    keep their scales; off (0), nothing is clamped. (Before the far field is added every Gaussian is held to it;
+    the box is the one the far field is drawn outside of, set here as the far field's step would.)"""
+    import math
+
+    capture, init = _room()
+    trainers = {cap: Trainer(capture, init, _room_config(max_thickness=cap), tracer()) for cap in (0.0, 0.01)}
+    for trainer in trainers.values():
+        with torch.no_grad():
+            ls = trainer.params["log_scales"]
+            ls[:4] = torch.log(torch.tensor([[0.5, 0.3, 0.9], [0.5, 0.3, 0.9], [0.5, 0.3, 0.9], [0.002, 0.5, 0.5]]))
+            means = trainer.params["means"]
+            trainer._thickness_box = (means.amin(0).double() - 0.1, means.amax(0).double() + 0.1)
+            means[1] = means[1] + 100.0  # far outside the box: a far-field Gaussian's place
+            trainer.fixed[2] = True
+        trainer.train_step()
+    on, off = trainers[0.01], trainers[0.0]
+    cap = math.log(0.01 * on.scene_size)
+    ls = on.params["log_scales"].detach()
+    assert ls[0, 1] == pytest.approx(cap, abs=1e-6)  # the thinnest axis, at the cap
+    assert ls[0, 0] > cap + 2 and ls[0, 2] > cap + 2  # the others are not
+    assert ls[1].min() > cap + 2 and ls[2].min() > cap + 2  # far field, fixed: untouched
+    assert ls[3, 0] < cap  # already thin
+    inside = torch.ones(len(ls), dtype=torch.bool)
+    inside[1] = inside[2] = False
+    assert (ls[inside].min(dim=1).values <= cap + 1e-6).all()
+    assert off.params["log_scales"].detach()[0].min() > cap + 2  # off: nothing clamped
+
+
 def _nan_loss(trainer, batch, reflections):
     total, metrics = Trainer.losses(trainer, batch, reflections)
     return total * float("nan"), metrics

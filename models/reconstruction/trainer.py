@@ -76,6 +76,8 @@ class Trainer:
         # the size every length threshold is a fraction of: the initial geometry's, not the cameras' (cameras
         # clustered in a big room give a small camera extent)
         self.scene_size = scene_size(init)
+        # where max_thickness applies: everywhere until the far field is added, then the captured room's box
+        self._thickness_box: tuple[torch.Tensor, torch.Tensor] | None = None
         self.units = capture.meta.units
         self.centre = np.mean([v.camera.origin for v in self.rays.views], axis=0)
         self.decisions: list[str] = []
@@ -364,10 +366,29 @@ class Trainer:
         self.optimizer.state.update(new_opt_state)
 
     @torch.no_grad()
+    def _clamp_thickness(self) -> None:
+        """Each Gaussian's thinnest scale at most ``max_thickness`` x the scene's size, but for the fixed ones and,
+        once the far field is added, those outside the captured room's box (which the far field is drawn outside of:
+        ``_captured_box``, mirror fills and the walls placed after warm-up included)."""
+        cap = math.log(self.config.max_thickness * self.scene_size)
+        ls = self.params["log_scales"]
+        thin, axis = ls.min(dim=1)
+        over = (thin > cap) & ~self.fixed.to(ls.device)
+        if self._thickness_box is not None:
+            lo, hi = (b.to(ls) for b in self._thickness_box)
+            means = self.params["means"]
+            over &= ((means >= lo) & (means <= hi)).all(dim=1)
+        rows = torch.nonzero(over).reshape(-1)
+        if len(rows):
+            ls[rows, axis[rows]] = cap
+
+    @torch.no_grad()
     def _clamp(self) -> None:
         self.params["diffuse"].clamp_(min=0.0)
         self.params["roughness"].clamp_(0.0, 1.0)
         self.params["f0"].clamp_(0.0, 1.0)
+        if self.config.max_thickness > 0:
+            self._clamp_thickness()
         self.anchors.project(self.params["means"], self.params["quats"], self.params["log_scales"])
 
     # ----------------------------------------------------------------- steps
@@ -552,6 +573,7 @@ class Trainer:
             placed = [w[0] for w in (walls, grown, closed) if w is not None]
             box = self._captured_box(scene, [f[0] for f in fills] + placed)
             ff = far_field_gaussians(cfg.far_field_count, self.centre, self.extent, cfg.seed, keep_out=box)
+            self._thickness_box = tuple(torch.from_numpy(np.asarray(b, dtype=np.float64)) for b in box)
             drawn = len(ff)
             if cfg.far_field_hidden > 0:
                 room = [f[0] for f in fills] + placed
@@ -820,6 +842,7 @@ class Trainer:
             "fixed": self.fixed.clone(),
             "prune_order": self._prune_order, "prune_round": self._prune_round,
             "prune_memory": self.prune_memory.clone(),
+            "thickness_box": self._thickness_box,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -837,6 +860,7 @@ class Trainer:
         self.reflected = state.get("reflected", torch.zeros_like(self.prior)).to(self.device)
         self.fixed = state.get("fixed", torch.zeros_like(self.prior)).to(self.device)
         self._prune_order, self._prune_round = state.get("prune_order"), state.get("prune_round", 0)
+        self._thickness_box = state.get("thickness_box")
         self.prune_memory = state.get("prune_memory", torch.zeros((len(self.prior), 0))).to(self.device)
         self._prior_rows = self._reflected_rows = self._fixed_rows = None
         self.anchors = Anchors(self.device, self.params["means"].dtype)
