@@ -348,6 +348,15 @@ def test_mirror_stereo_points_on_a_room_plane_become_its_surfels_with_its_materi
     assert torch.sigmoid(surfels.opacity_logits).min() > 0.89  # the fill's opacity: a plane, not a haze
     none = stereo_on_planes(None, stereo)
     assert not none[0].any() and none[1] is None
+    # tol_factor: stereo depths that scatter round a wall (here 2-4 tol in front of the metal wall) join it when
+    # the tolerance is widened, and only then
+    near = np.stack([np.full(10, 2.0) - rng.uniform(2, 4, 10) * room.tol, rng.uniform(0.5, 2.0, 10),
+                     rng.uniform(-1, 1, 10)], 1)
+    far = stereo.subset(torch.arange(10))
+    far.means = torch.tensor(near, dtype=torch.float32)
+    assert not stereo_on_planes(room, far)[0].any()
+    on5, surfels5, _ = stereo_on_planes(room, far, tol_factor=5.0)
+    assert on5.all() and np.abs(surfels5.means.numpy()[:, 0] - 2.0).max() < 0.02
 
 
 def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():

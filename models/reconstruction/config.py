@@ -146,6 +146,11 @@ class ReconstructConfig:
     stereo_on_planes: bool = setting(True, "mirror-stereo Gaussians on one of the room's planes become plane-fill "
                                      "surfels (on the plane, geometry frozen, the plane's F0 and roughness, the colour "
                                      "the mirrors show) instead of free matte blobs (plane_fill.stereo_on_planes)")
+    stereo_plane_tol: float = setting(1.0, "a mirror-stereo Gaussian is on one of the room's planes (stereo_on_planes) "
+                                      "within this x the plane tolerance (1 % of the scene's size); the stereo's "
+                                      "depths of a wall seen only in a mirror scatter tens of centimetres, and those "
+                                      "in front of it stay free blobs, a veil where a test view stands (README)",
+                                      minimum=0)
     back_fill: bool = setting(True, "after the last step: a second layer behind thin surfaces whose backs no "
                               "training view saw but the views saw empty space behind (a table top's underside), "
                               "with the front's material lit by what the model sends that side (back_fill.py). "

@@ -420,8 +420,8 @@ def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarr
 
 
 @torch.no_grad()
-def stereo_on_planes(room: Room | None, stereo: Gaussians,
-                     opacity: float = 0.9) -> tuple[torch.Tensor, Gaussians | None, dict]:
+def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9,
+                     tol_factor: float = 1.0) -> tuple[torch.Tensor, Gaussians | None, dict]:
     """The mirror-stereo Gaussians (``stereo``) that lie on one of the room's bounding planes (within its
     tolerance, inside the other planes' half-spaces) made plane-fill surfels: moved onto the plane, the fill's
     size (``room.h``) and opacity, the colour the mirrors showed (the stereo Gaussian's), the plane's F0 and
@@ -430,6 +430,9 @@ def stereo_on_planes(room: Room | None, stereo: Gaussians,
     floor and walls seen only in a mirror are the stereo's matte, free, semi-transparent blobs: a haze in
     front of them and no gloss (zoo_mirror_only's test views, none of whose pixels a training camera sees
     directly: depth 10 % short on 27-45 % of the pixels, the glossy floor's normals 26-41 degrees off).
+    ``tol_factor``: "on a plane" is within this x the room's tolerance of it (the stereo's depths scatter more than
+    the buffers' points: zoo_mirror_metal's front wall, seen only in the mirror at 5-6 m of virtual distance,
+    got stereo points from 30 cm in front of it to 50 cm behind).
     Returns ([M] bool: the stereo Gaussians replaced, the surfels or None, {"on_planes": count})."""
     m = len(stereo)
     on = np.zeros(m, dtype=bool)
@@ -442,7 +445,7 @@ def stereo_on_planes(room: Room | None, stereo: Gaussians,
         if not len(inl):  # a wall placed by room_closing.py: no material of its own
             continue
         dist = p @ n - d
-        sel = (np.abs(dist) <= room.tol) & ~on
+        sel = (np.abs(dist) <= tol_factor * room.tol) & ~on
         for j, (n2, d2, _) in enumerate(room.bound):
             if j != i:
                 sel &= p @ n2 - d2 > -room.tol

@@ -551,7 +551,7 @@ class Trainer:
             planar = None
             if cfg.stereo_on_planes and self._room is not None and stereo is not None and stereo[0] is not None:
                 # those on the room's planes become plane-fill surfels (plane_fill.stereo_on_planes)
-                on, surfels, on_planes = stereo_on_planes(self._room, stereo[0])
+                on, surfels, on_planes = stereo_on_planes(self._room, stereo[0], tol_factor=cfg.stereo_plane_tol)
                 if surfels is not None:
                     i = next(k for k, f in enumerate(fills) if f[0] is stereo[0])
                     rest = stereo[0].subset(~on)
