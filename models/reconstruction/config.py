@@ -92,8 +92,8 @@ class ReconstructConfig:
     adam_eps: float = setting(1e-15, "Adam epsilon", exclusiveMinimum=0)
     prune_every: int = setting(125, "pruning period (steps); 0 = never", minimum=0)
     max_thickness: float = setting(0.0, "a Gaussian's thinnest axis (its scale) is clamped to at most this x the "
-                                   "scene's size after every step, inside the initial Gaussians' box (far-field "
-                                   "ones keep theirs); 0 = off. Surfaces are thin: a Gaussian that only reflections "
+                                   "scene's size after every step (fixed ones, and far-field ones outside the "
+                                   "captured room's box, keep theirs); 0 = off. Surfaces are thin: a Gaussian that only reflections "
                                    "train (what mirrors show behind the cameras) otherwise grows into a blob tens "
                                    "of centimetres thick that a test view standing there looks through (README)",
                                    minimum=0)
