@@ -279,3 +279,23 @@ def test_stereo_matches_agree_across_mirrors(stereo):
     fill, stats = stereo
     assert stats["inconsistent"] < 0.05 * stats["kept"], stats
     assert stats["added"] == stats["kept"] - stats["inconsistent"]
+
+
+def test_the_stretch_the_sweep_cannot_tell_apart_is_long_on_flat_colour_only(stereo):
+    """``plane_slack`` (for ``plane_fill.stereo_on_planes``): per stereo Gaussian, the stretch of its reflected
+    ray round it whose sweep cost is within that fraction of its own. 0: half-way to the next swept plane on each
+    side (one plane's width). The panel's texture pins its depth, so its stretch stays one plane wide at 0.1; the
+    flat grey round it matches at every depth, so its stretch is long. The Gaussians themselves do not change."""
+    fill, stats = stereo
+    dirs, span = stats["along"]
+    assert dirs.shape == (len(fill), 3) and span.shape == (len(fill), 2)
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1, atol=1e-6)
+    assert (span[:, 0] <= 0).all() and (span[:, 1] >= 0).all()
+    assert (span[:, 1] - span[:, 0]).max() < 0.1  # one swept plane (~7 cm here) at slack 0
+    wide, wide_stats = mirror_stereo_gaussians(_rays(), reference_trace, _room(), count=100000, plane_slack=0.1)
+    np.testing.assert_array_equal(wide.means.numpy(), fill.means.numpy())
+    width = wide_stats["along"][1][:, 1] - wide_stats["along"][1][:, 0]
+    assert (width >= span[:, 1] - span[:, 0] - 1e-9).all()  # only ever wider
+    panel = (np.abs(fill.means.numpy()[:, :2]) < PANEL_HALF - 0.05).all(-1)
+    assert panel.sum() > 500 and np.percentile(width[panel], 90) < 0.1
+    assert np.median(width[~panel]) > 0.3

@@ -357,6 +357,24 @@ def test_mirror_stereo_points_on_a_room_plane_become_its_surfels_with_its_materi
     assert not stereo_on_planes(room, far)[0].any()
     on5, surfels5, _ = stereo_on_planes(room, far, tol_factor=5.0)
     assert on5.all() and np.abs(surfels5.means.numpy()[:, 0] - 2.0).max() < 0.02
+    # along: the same points, each found along a reflected ray heading for the metal wall (x = 2) at 30-60 degrees;
+    # those whose ray crosses the wall within the stretch the sweep could not tell from their depth join it where
+    # the ray crosses it, the others (a textured object's: a short stretch) stay, even at the wider tolerance
+    angle = np.radians(rng.uniform(30, 60, 10))
+    dirs = np.stack([np.cos(angle), np.zeros(10), np.sin(angle)], 1)
+    to_wall = (2.0 - near[:, 0]) / dirs[:, 0]  # distance along the ray to the wall
+    span = np.stack([np.full(10, -0.05), np.where(np.arange(10) < 6, to_wall + 0.02, to_wall - 0.02)], 1)
+    on_ray, surfels_ray, stats_ray = stereo_on_planes(room, far, along=(dirs, span))
+    np.testing.assert_array_equal(on_ray.numpy(), np.arange(10) < 6)
+    assert stats_ray["along"] == 6 and stats_ray["on_planes"] == 6
+    crossing = near[:6] + to_wall[:6, None] * dirs[:6]
+    np.testing.assert_allclose(surfels_ray.means.numpy(), crossing, atol=1e-5)  # where the ray meets the wall
+    np.testing.assert_allclose(surfels_ray.normals.numpy(), np.tile([-1, 0, 0], (6, 1)), atol=0.02)
+    assert np.abs(surfels_ray.f0.numpy() - 0.9).max() < 1e-6  # the wall's material
+    # points already within the tolerance join by it (the projection), not counted as joined along their ray
+    on_tol, _, stats_tol = stereo_on_planes(room, stereo, along=(np.tile([1.0, 0, 0], (k, 1)), np.zeros((k, 2))))
+    np.testing.assert_array_equal(on_tol.numpy(), expected)
+    assert stats_tol["along"] == 0
 
 
 def test_a_plane_made_of_a_larger_ones_points_is_not_a_wall_of_its_own():

@@ -151,6 +151,11 @@ class ReconstructConfig:
                                       "depths of a wall seen only in a mirror scatter tens of centimetres, and those "
                                       "in front of it stay free blobs, a veil where a test view stands (README)",
                                       minimum=0)
+    stereo_plane_slack: float = setting(0.0, "0 = off. > 0: a mirror-stereo Gaussian also joins a room plane "
+                                        "(stereo_on_planes) where its reflected ray crosses the plane at a depth "
+                                        "whose sweep cost is within this fraction of the best depth's (flat walls "
+                                        "seen only in mirrors match over tens of centimetres; textured objects "
+                                        "near a wall do not). README", minimum=0)
     back_fill: bool = setting(True, "after the last step: a second layer behind thin surfaces whose backs no "
                               "training view saw but the views saw empty space behind (a table top's underside), "
                               "with the front's material lit by what the model sends that side (back_fill.py). "

@@ -245,13 +245,21 @@ def _masked_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
 def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray, hi: np.ndarray, t_min: float,
                depths: int = 96, window: int = 2, min_views: int = 3, ratio: float = 0.9,
                max_cost: float = 0.2, best_fraction: float = 1.0, min_contrast: float = 0.1,
-               max_basin: float = 0.4, complete_radius: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                       np.ndarray, int, int]:
+               max_basin: float = 0.4, complete_radius: int = 6,
+               plane_slack: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int,
+                                                  np.ndarray, np.ndarray]:
     """Plane sweep of one reference view's open mirror pixels (module docstring). Returns the kept pixels'
     (points [M, 3], colours [M, 3], virtual distances [M], reflected directions [M, 3]), how many otherwise
     clear pixels were dropped because their best depth lies on the edge of the swept range, and how many of
     the kept ones are flat pixels completed from their decided neighbours (``complete_flat`` within
-    ``complete_radius`` pixels; 0 turns it off), and the kept pixels' flat indices into the reference image."""
+    ``complete_radius`` pixels; 0 turns it off), the kept pixels' flat indices into the reference image, and
+    [M, 2] the stretch of the reflected ray round each kept point (distances along it from the point, <= 0 and
+    >= 0) over which the sweep cannot tell the depth from the one it chose: the run of swept planes round the
+    chosen one whose aggregated cost is at most (1 + ``plane_slack``) x its own, out to half-way to the next plane
+    (0: just that half-way). A flat wall seen at 5-6 m of virtual distance matches over many planes (zoo_mirror_metal:
+    stereo depths scattered 30 cm in front of its front wall, the cost at the wall within 3 % of the best for
+    most of them); a textured object near a wall does not (zoo_mirror_only's urn, 4-10 cm above the floor: the
+    cost on the floor 1.13-1.5x the best)."""
     h, w = ref.open.shape
     pix = np.nonzero(ref.open.reshape(-1))[0]
     x = ref.points.reshape(-1, 3)[pix]
@@ -317,9 +325,21 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
         filled = int(completed.sum())
         best = np.where(completed, fill, best)
         keep |= completed
-    tk = t[rows, best][keep]
+    lo_k, hi_k = best.copy(), best.copy()
+    if plane_slack > 0:
+        limit = (1 + plane_slack) * agg[rows, best]
+        for _ in range(depths):
+            step_l = (lo_k > 0) & (agg[rows, np.maximum(lo_k - 1, 0)] <= limit)
+            step_r = (hi_k < depths - 1) & (agg[rows, np.minimum(hi_k + 1, depths - 1)] <= limit)
+            if not (step_l.any() or step_r.any()):
+                break
+            lo_k, hi_k = lo_k - step_l, hi_k + step_r
+    tb = t[rows, best]
+    span = np.stack([(t[rows, np.maximum(lo_k - 1, 0)] + t[rows, lo_k]) / 2 - tb,
+                     (t[rows, np.minimum(hi_k + 1, depths - 1)] + t[rows, hi_k]) / 2 - tb], axis=1)
+    tk = tb[keep]
     return (x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk), r[keep],
-            int(edge.sum()), filled, pix[keep])
+            int(edge.sum()), filled, pix[keep], span[keep])
 
 
 def depth_votes(points: np.ndarray, view: MirrorView, depth: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -345,14 +365,17 @@ def depth_votes(points: np.ndarray, view: MirrorView, depth: np.ndarray, tol: fl
 @torch.no_grad()
 def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6000, far_scale: float = 3.0,
                             opacity: float = 0.3, seed: int = 0, dtype=torch.float32, min_agree: int = 1,
-                            agree_tol: float = 0.03, min_share: float = 0.0, **sweep) -> tuple[Gaussians | None, dict]:
+                            agree_tol: float = 0.03, min_share: float = 0.0, plane_slack: float = 0.0,
+                            **sweep) -> tuple[Gaussians | None, dict]:
     """Up to ``count`` Gaussians where the plane sweep of every planar mirror (of every view) finds a clear depth
     (module docstring); ``min_share`` > 0: a depth needs that share of the other mirrors (at least 3) to see it.
     Candidates lie between the mirror and where the reflected ray leaves the cube about
     the centre of the current Gaussians' box, ``far_scale`` times its largest side (an object seen only in a
     mirror may lie well outside the box of what the cameras see directly). ``trace_fn(origins, dirs,
-    gaussians)`` decides which reflections are open (None: all are). Returns (Gaussians or None, statistics
-    for the log)."""
+    gaussians)`` decides which reflections are open (None: all are). ``plane_slack``: see ``sweep_view``.
+    Returns (Gaussians or None, statistics for the log); the statistics' "along" is, per returned Gaussian, (the
+    direction [N, 3] of the reflected ray that found it, the stretch [N, 2] of that ray round it the sweep
+    cannot tell from it: ``sweep_view``), for ``plane_fill.stereo_on_planes``."""
     usable, stats = mirror_views(rays, trace_fn, gaussians)
     stats.update(kept=0, added=0, edge=0, completed=0, inconsistent=0)
     if len(usable) < 2 or count <= 0:
@@ -360,16 +383,17 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     lo, hi, step = scene_box(gaussians)
     centre, half = (lo + hi) / 2, far_scale * float((hi - lo).max()) / 2
     lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
-    pos, colour, dist, fl, seen_along, depth = [], [], [], [], [], []
+    pos, colour, dist, fl, seen_along, spans, depth = [], [], [], [], [], [], []
     for i, ref in enumerate(usable):
         others = usable[:i] + usable[i + 1:]
         if min_share > 0:  # at least this share of the other mirrors must see a depth (module docstring)
             sweep["min_views"] = max(3, math.ceil(min_share * len(others) - 1e-9))
-        p, c, d, r, edge, filled, px = sweep_view(ref, others, rays.views, lo, hi, 20 * step, **sweep)
+        p, c, d, r, edge, filled, px, span = sweep_view(ref, others, rays.views, lo, hi, 20 * step,
+                                                        plane_slack=plane_slack, **sweep)
         stats["edge"] += edge
         stats["completed"] += filled
         pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))
-        seen_along.append(r)
+        seen_along.append(r), spans.append(span)
         dm = np.full(ref.open.size, np.nan)
         dm[px] = d
         depth.append(dm.reshape(ref.open.shape))
@@ -384,9 +408,10 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
                     through += t
             good = (agree >= min_agree) & (through <= agree)
             stats["inconsistent"] += int((~good).sum())
-            pos[i], colour[i], dist[i], fl[i], seen_along[i] = (a[good] for a in (pos[i], colour[i], dist[i], fl[i],
-                                                                                 seen_along[i]))
-    pos, colour, dist, fl, seen_along = (np.concatenate(a) for a in (pos, colour, dist, fl, seen_along))
+            pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i] = (
+                a[good] for a in (pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i]))
+    pos, colour, dist, fl, seen_along, spans = (np.concatenate(a) for a in (pos, colour, dist, fl, seen_along,
+                                                                              spans))
     if stats["edge"]:
         stats["notes"] = [f"mirror stereo: {stats['edge']} pixels matched best on the edge of the depth sweep "
                           f"(the cube {far_scale:g}x the scene's box): not placed; what they see may lie farther"]
@@ -395,6 +420,7 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     pick = np.random.default_rng(seed).permutation(len(pos))[:count]
     pos, colour, scale = pos[pick], colour[pick], dist[pick] / fl[pick]  # a pixel at its virtual distance
     stats["added"] = len(pos)
+    stats["along"] = (seen_along[pick], spans[pick])
     return matte_gaussians(torch.from_numpy(pos), torch.from_numpy(scale).clamp_min(1e-6), opacity,
                            torch.from_numpy(colour).clamp(0.0, 100.0), dtype,
                            facing=torch.from_numpy(seen_along[pick]), material=matte_material(gaussians)), stats

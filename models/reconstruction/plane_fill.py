@@ -420,8 +420,8 @@ def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarr
 
 
 @torch.no_grad()
-def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9,
-                     tol_factor: float = 1.0) -> tuple[torch.Tensor, Gaussians | None, dict]:
+def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9, tol_factor: float = 1.0,
+                     along: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[torch.Tensor, Gaussians | None, dict]:
     """The mirror-stereo Gaussians (``stereo``) that lie on one of the room's bounding planes (within its
     tolerance, inside the other planes' half-spaces) made plane-fill surfels: moved onto the plane, the fill's
     size (``room.h``) and opacity, the colour the mirrors showed (the stereo Gaussian's), the plane's F0 and
@@ -433,25 +433,44 @@ def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9,
     ``tol_factor``: "on a plane" is within this x the room's tolerance of it (the stereo's depths scatter more than
     the buffers' points: zoo_mirror_metal's front wall, seen only in the mirror at 5-6 m of virtual distance,
     got stereo points from 30 cm in front of it to 50 cm behind).
-    Returns ([M] bool: the stereo Gaussians replaced, the surfels or None, {"on_planes": count})."""
+    ``along`` (the mirror stereo's statistics' "along": per stereo Gaussian the direction of the reflected ray
+    that found it and the stretch of that ray round it the sweep could not tell from its depth): a Gaussian whose
+    ray crosses a plane within that stretch (and inside the other planes) joins the plane too, where its ray
+    crosses it: the stereo chose among depths it could not tell apart, and the plane is one of them. Unlike a
+    wider ``tol_factor`` this does not take a textured object standing near a wall or on the floor.
+    Returns ([M] bool: the stereo Gaussians replaced, the surfels or None, {"on_planes": count, "added":
+    count, "along": how many joined by ``along`` alone})."""
     m = len(stereo)
     on = np.zeros(m, dtype=bool)
     if room is None or m == 0:
-        return torch.from_numpy(on), None, {"on_planes": 0}
+        return torch.from_numpy(on), None, {"on_planes": 0, "added": 0, "along": 0}
     p = stereo.means.detach().double().cpu().numpy()
+    by_ray = 0
     colour = stereo.diffuse.detach().double().cpu().numpy()
     src, parts = room.src, []
     for i, (n, d, inl) in enumerate(room.bound):
         if not len(inl):  # a wall placed by room_closing.py: no material of its own
             continue
         dist = p @ n - d
-        sel = (np.abs(dist) <= tol_factor * room.tol) & ~on
+        pos = p - dist[:, None] * n
+        near = np.abs(dist) <= tol_factor * room.tol
+        sel, cross = near & ~on, np.zeros(m, dtype=bool)
+        if along is not None:  # the plane among the depths the sweep could not tell apart: where the ray crosses it
+            dirs, span = along
+            cos = dirs @ n
+            s = -dist / np.where(np.abs(cos) > 1e-6, cos, np.nan)
+            cross = ~sel & ~on & (s >= span[:, 0]) & (s <= span[:, 1])
+            pos[cross] = p[cross] + s[cross, None] * dirs[cross]
+            pos[cross] -= (pos[cross] @ n - d)[:, None] * n
+            sel |= cross
+        at = np.where(cross[:, None], pos, p)
         for j, (n2, d2, _) in enumerate(room.bound):
             if j != i:
-                sel &= p @ n2 - d2 > -room.tol
+                sel &= at @ n2 - d2 > -room.tol
         if not sel.any():
             continue
-        pos = p[sel] - dist[sel, None] * n
+        by_ray += int((sel & cross).sum())
+        pos = pos[sel]
         mat = inl[~src["emitting"][inl]]
         mat = mat if len(mat) else inl
         k = min(16, len(mat))
@@ -462,7 +481,7 @@ def stereo_on_planes(room: Room | None, stereo: Gaussians, opacity: float = 0.9,
                               stereo.dtype))
         on |= sel
     fill = Gaussians.cat(parts) if parts else None
-    return torch.from_numpy(on), fill, {"on_planes": int(on.sum()), "added": int(on.sum())}
+    return torch.from_numpy(on), fill, {"on_planes": int(on.sum()), "added": int(on.sum()), "along": by_ray}
 
 
 RELIGHT_PROBES = 3000   # relight_plane_fill: points per plane (seen side, fill side) where the irradiance is traced

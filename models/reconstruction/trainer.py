@@ -533,7 +533,8 @@ class Trainer:
             stereo = None
             if cfg.mirror_stereo_count > 0:
                 stereo = mirror_stereo_gaussians(self.rays, self.backend.trace, scene, cfg.mirror_stereo_count,
-                                                 seed=cfg.seed, min_share=cfg.mirror_stereo_min_share)
+                                                 seed=cfg.seed, min_share=cfg.mirror_stereo_min_share,
+                                                 plane_slack=cfg.stereo_plane_slack)
                 fills.append((*stereo,
                               "%(added)d Gaussians where the reflections of %(planes)d planar mirrors (in "
                               "%(planar_views)d views, %(pixels)d open mirror pixels; %(ignored)d curved or "
@@ -551,13 +552,17 @@ class Trainer:
             planar = None
             if cfg.stereo_on_planes and self._room is not None and stereo is not None and stereo[0] is not None:
                 # those on the room's planes become plane-fill surfels (plane_fill.stereo_on_planes)
-                on, surfels, on_planes = stereo_on_planes(self._room, stereo[0], tol_factor=cfg.stereo_plane_tol)
+                along = stereo[1].get("along") if cfg.stereo_plane_slack > 0 else None
+                on, surfels, on_planes = stereo_on_planes(self._room, stereo[0], tol_factor=cfg.stereo_plane_tol,
+                                                          along=along)
                 if surfels is not None:
                     i = next(k for k, f in enumerate(fills) if f[0] is stereo[0])
                     rest = stereo[0].subset(~on)
                     fills[i] = (rest if len(rest) else None, *fills[i][1:])
                     planar = (surfels, on_planes, "%(added)d of the mirror stereo's Gaussians on the room's planes made "
-                              "plane-fill surfels (the plane's F0 and roughness, the colour the mirrors show)")
+                              "plane-fill surfels (the plane's F0 and roughness, the colour the mirrors show; %(along)d of "
+                              "them where their ray crosses the plane among the depths the sweep could not tell "
+                              "apart)")
             if self._room is not None and cfg.close_room:
                 # walls no view looks at, where sharp reflections (curved mirrors too) agree on them (room_closing.py),
                 # and the plane fill carried out to them
