@@ -364,6 +364,15 @@ def test_max_thickness_flattens_thick_gaussians_inside_the_scene_only():
     inside[1] = inside[2] = False
     assert (ls[inside].min(dim=1).values <= cap + 1e-6).all()
     assert off.params["log_scales"].detach()[0].min() > cap + 2  # off: nothing clamped
+    # thickness_reflected_only: only the Gaussians the mirror fills placed (what only reflections train) are held
+    scoped = Trainer(capture, init, _room_config(max_thickness=0.01, thickness_reflected_only=True), tracer())
+    with torch.no_grad():
+        scoped.params["log_scales"][:2] = torch.log(torch.tensor([[0.5, 0.3, 0.9], [0.5, 0.3, 0.9]]))
+        scoped.reflected[1] = True
+    scoped.train_step()
+    ls = scoped.params["log_scales"].detach()
+    assert ls[1, 1] == pytest.approx(cap, abs=1e-6) and ls[1, 0] > cap + 2  # a mirror fill's: clamped
+    assert ls[0].min() > cap + 2  # the room's own: kept
 
 
 def _nan_loss(trainer, batch, reflections):

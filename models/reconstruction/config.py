@@ -97,6 +97,10 @@ class ReconstructConfig:
                                    "train (what mirrors show behind the cameras) otherwise grows into a blob tens "
                                    "of centimetres thick that a test view standing there looks through (README)",
                                    minimum=0)
+    thickness_reflected_only: bool = setting(False, "max_thickness clamps only the Gaussians the mirror fills "
+                                             "placed (mirror stereo, reflection fill: what the cameras see only in "
+                                             "mirrors, which no view pins to a thin surface); the rest of the room "
+                                             "keeps its scales (README)")
     prune_from: int = setting(1250, "first step that prunes", minimum=0)
     prune_min_weight: float = setting(0.1, "keep Gaussians whose blending weight summed over a view, averaged over "
                                       "views, is >= this at the reference's 768-pixel image height (scaled by "

@@ -369,11 +369,14 @@ class Trainer:
     def _clamp_thickness(self) -> None:
         """Each Gaussian's thinnest scale at most ``max_thickness`` x the scene's size, but for the fixed ones and,
         once the far field is added, those outside the captured room's box (which the far field is drawn outside of:
-        ``_captured_box``, mirror fills and the walls placed after warm-up included)."""
+        ``_captured_box``, mirror fills and the walls placed after warm-up included); ``thickness_reflected_only``:
+        only the mirror fills' Gaussians (``self.reflected``)."""
         cap = math.log(self.config.max_thickness * self.scene_size)
         ls = self.params["log_scales"]
         thin, axis = ls.min(dim=1)
         over = (thin > cap) & ~self.fixed.to(ls.device)
+        if self.config.thickness_reflected_only:
+            over &= self.reflected.to(ls.device)
         if self._thickness_box is not None:
             lo, hi = (b.to(ls) for b in self._thickness_box)
             means = self.params["means"]
