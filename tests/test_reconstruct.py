@@ -343,7 +343,8 @@ def test_max_thickness_flattens_thick_gaussians_inside_the_scene_only():
     import math
 
     capture, init = _room()
-    trainers = {cap: Trainer(capture, init, _room_config(max_thickness=cap), tracer()) for cap in (0.0, 0.01)}
+    trainers = {cap: Trainer(capture, init, _room_config(max_thickness=cap, thickness_reflected_only=False), tracer())
+                for cap in (0.0, 0.01)}
     for trainer in trainers.values():
         with torch.no_grad():
             ls = trainer.params["log_scales"]
@@ -364,7 +365,8 @@ def test_max_thickness_flattens_thick_gaussians_inside_the_scene_only():
     inside[1] = inside[2] = False
     assert (ls[inside].min(dim=1).values <= cap + 1e-6).all()
     assert off.params["log_scales"].detach()[0].min() > cap + 2  # off: nothing clamped
-    # thickness_reflected_only: only the Gaussians the mirror fills placed (what only reflections train) are held
+    # thickness_reflected_only (the default): only the Gaussians the mirror fills placed (what only reflections
+    # train) are held
     scoped = Trainer(capture, init, _room_config(max_thickness=0.01, thickness_reflected_only=True), tracer())
     with torch.no_grad():
         scoped.params["log_scales"][:2] = torch.log(torch.tensor([[0.5, 0.3, 0.9], [0.5, 0.3, 0.9]]))
