@@ -15,7 +15,7 @@ from models.capture.camera import Camera
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.mirror_stereo import (MirrorView, complete_flat, depth_votes, fit_plane,
+from models.reconstruction.mirror_stereo import (MirrorView, complete_flat, depth_votes, fit_plane, grow_run,
                                                  mirror_stereo_gaussians, mirror_views, planar_components)
 
 PANEL_Z, PANEL_HALF = 2.0, 0.5
@@ -299,3 +299,21 @@ def test_the_stretch_the_sweep_cannot_tell_apart_is_long_on_flat_colour_only(ste
     panel = (np.abs(fill.means.numpy()[:, :2]) < PANEL_HALF - 0.05).all(-1)
     assert panel.sum() > 500 and np.percentile(width[panel], 90) < 0.1
     assert np.median(width[~panel]) > 0.3
+
+
+def test_grow_run_gives_the_basin_and_the_slack_run_round_the_best_plane():
+    """The sweep's two runs round a pixel's best plane: its basin (outwards while the cost does not fall; the
+    best cost outside it decides whether the depth is clear) and the run within (1 + slack) x the best cost (the
+    stretch ``plane_fill`` may snap along). Unmatched planes (inf) end the slack run and never start a fall."""
+    inf = np.inf
+    agg = np.array([[0.5, 0.3, 0.4, 0.2, 0.21, 0.6, 0.1],
+                    [inf, 0.2, 0.2, 0.22, 0.3, inf, 0.25],
+                    [0.1, 0.9, 0.9, 0.9, 0.9, 0.9, 0.9]])
+    best = agg.argmin(1)
+    left, right = grow_run(agg, best, lambda nxt, cur: nxt >= cur)
+    np.testing.assert_array_equal(left, [5, 0, 0])  # row 0: 0.6 >= 0.1, then 0.21 < 0.6 stops it
+    np.testing.assert_array_equal(right, [6, 5, 6])  # row 1: up to the unmatched plane (inf >= 0.3), then 0.25
+    limit = 1.1 * agg[np.arange(3), best]
+    lo, hi = grow_run(agg, best, lambda nxt, cur: nxt <= limit)
+    np.testing.assert_array_equal(lo, [6, 1, 0])
+    np.testing.assert_array_equal(hi, [6, 3, 0])  # row 1: 0.2, 0.2, 0.22 <= 0.22; 0.3 is not

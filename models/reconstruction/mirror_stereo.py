@@ -242,6 +242,21 @@ def _masked_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
     return np.where(n > 0, np.where(n % 2 == 1, lo, (lo + hi) / 2), 0.0)
 
 
+def grow_run(agg: np.ndarray, start: np.ndarray, step_ok) -> tuple[np.ndarray, np.ndarray]:
+    """(first [P], last [P]) plane indices of the run of planes round ``start`` [P] in each row of the costs
+    ``agg`` [P, K]: grown outwards one plane at a time on each side while ``step_ok(cost of the next plane [P],
+    cost of the run's current end [P])`` holds (an elementwise bool array)."""
+    rows, last = np.arange(len(start)), agg.shape[1] - 1
+    left, right = start.copy(), start.copy()
+    for _ in range(agg.shape[1]):
+        step_l = (left > 0) & step_ok(agg[rows, np.maximum(left - 1, 0)], agg[rows, left])
+        step_r = (right < last) & step_ok(agg[rows, np.minimum(right + 1, last)], agg[rows, right])
+        if not (step_l.any() or step_r.any()):
+            break
+        left, right = left - step_l, right + step_r
+    return left, right
+
+
 def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray, hi: np.ndarray, t_min: float,
                depths: int = 96, window: int = 2, min_views: int = 3, ratio: float = 0.9,
                max_cost: float = 0.2, best_fraction: float = 1.0, min_contrast: float = 0.1,
@@ -297,13 +312,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     rows = np.arange(len(pix))
     c1 = agg[rows, best]
     # the basin of the best depth: outwards from it while the cost does not fall; c2 = best cost outside it
-    left, right = best.copy(), best.copy()
-    for _ in range(depths):
-        step_l = (left > 0) & (agg[rows, np.maximum(left - 1, 0)] >= agg[rows, left])
-        step_r = (right < depths - 1) & (agg[rows, np.minimum(right + 1, depths - 1)] >= agg[rows, right])
-        if not (step_l.any() or step_r.any()):
-            break
-        left, right = left - step_l, right + step_r
+    left, right = grow_run(agg, best, lambda nxt, cur: nxt >= cur)
     k = np.arange(depths)[None, :]
     c2 = np.where((k < left[:, None]) | (k > right[:, None]), agg, np.inf).min(1)
     # texture: the relative spread of the reflected luminance over the window (flat colour matches anywhere)
@@ -328,12 +337,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     lo_k, hi_k = best.copy(), best.copy()
     if plane_slack > 0:
         limit = (1 + plane_slack) * agg[rows, best]
-        for _ in range(depths):
-            step_l = (lo_k > 0) & (agg[rows, np.maximum(lo_k - 1, 0)] <= limit)
-            step_r = (hi_k < depths - 1) & (agg[rows, np.minimum(hi_k + 1, depths - 1)] <= limit)
-            if not (step_l.any() or step_r.any()):
-                break
-            lo_k, hi_k = lo_k - step_l, hi_k + step_r
+        lo_k, hi_k = grow_run(agg, best, lambda nxt, cur: nxt <= limit)
     tb = t[rows, best]
     span = np.stack([(t[rows, np.maximum(lo_k - 1, 0)] + t[rows, lo_k]) / 2 - tb,
                      (t[rows, np.minimum(hi_k + 1, depths - 1)] + t[rows, hi_k]) / 2 - tb], axis=1)
