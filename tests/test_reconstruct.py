@@ -151,6 +151,38 @@ def test_far_field_only_when_reflections_escape(demo, book):
         blind.decisions
 
 
+def test_far_field_margin_keeps_the_grown_shell_out_of_the_room(book):
+    """``far_field_margin``: the far field's rows are marked (``Trainer.far``); after each step every one of them
+    has that many standard deviations outside the captured box (the one the shell was drawn outside of), however
+    large training made it. Off (0), grown far-field Gaussians reach into the room (zoo_mirror_only: through the
+    wall seen only in the mirror, F0 0.04 on the test views' matte wall)."""
+    import math
+
+    from models.reconstruction.far_field import clearance_factors
+
+    cfg = dict(SMALL, warmup=0, mirror_stereo_count=0, highlight_fill=False, close_room=False, prune_every=0)
+    trainers = {m: Trainer(*book, ReconstructConfig.from_dict(dict(cfg, far_field_margin=m)), tracer())
+                for m in (0.0, 2.0)}
+    factors = {}
+    for margin, trainer in trainers.items():
+        n_scene = len(trainer.params["means"])
+        trainer.train_step()  # reflections on: adds the far field (appended: the fills are off)
+        assert trainer.far_field_added and trainer.far[n_scene:].all() and not trainer.far[:n_scene].any()
+        with torch.no_grad():  # grown, as training grows the shell's Gaussians behind a wall seen in a mirror
+            trainer.params["log_scales"][n_scene:] += math.log(20.0)
+        before = trainer.params["log_scales"].detach()[n_scene:].clone()
+        trainer.train_step()
+        lo, hi = trainer._thickness_box
+        p = {k: v.detach()[n_scene:].double() for k, v in trainer.params.items()}
+        factors[margin] = clearance_factors(p["means"], p["quats"], p["log_scales"], lo, hi, 2.0,
+                                            1e-4 * trainer.scene_size)
+        if margin:
+            shrunk = (p["log_scales"] < before.double() - 0.1).all(1)
+            assert 0 < shrunk.sum() < len(shrunk) // 2  # only those that reached in
+    assert (factors[0.0] < 0.9).sum() > 50  # off: grown ones reach into the room
+    torch.testing.assert_close(factors[2.0], torch.ones_like(factors[2.0]), atol=1e-6, rtol=0)
+
+
 def test_pruning_keeps_what_the_views_see_only_in_mirrors(book):
     """The far-field Gaussians behind mirror_book's walls are seen by no training camera directly, only in the
     mirror. Pruning by the primary rays' blending weight alone removed every one of them (and every object seen

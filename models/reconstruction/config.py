@@ -120,6 +120,12 @@ class ReconstructConfig:
                                       "spot (zoo_lshape test_002: one of radiance 8.5 behind the wall round the "
                                       "window made 66 % of the view's bright error); 0 = keep all",
                                       minimum=0, maximum=1)
+    far_field_margin: float = setting(0.0, "after every step each far-field Gaussian is shrunk (never moved) until "
+                                      "this many of its standard deviations, along the axis that best separates it "
+                                      "from the captured room's box, stay outside that box: the shell the "
+                                      "reflections see past the capture, not a veil inside the room (zoo_mirror_only: "
+                                      "far-field Gaussians grown to 2.6 m reached through the wall seen only in the "
+                                      "mirror and put F0 0.04 on the test views' matte wall); 0 = off", minimum=0)
     far_field_escape: float = setting(0.01, "auto: on when more mirror-like reflections than this miss the init",
                                       minimum=0, maximum=1)
     reflection_fill_count: int = setting(0, "with the far field: Gaussians along open mirror reflections (0 = off)",

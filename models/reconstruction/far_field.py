@@ -22,6 +22,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
+from models.gaussians.activations import quats_to_rotmats
 
 
 def far_field_gaussians(count: int, centre: np.ndarray, extent: float, seed: int, dtype=torch.float32,
@@ -51,3 +52,22 @@ def far_field_gaussians(count: int, centre: np.ndarray, extent: float, seed: int
         roughness=torch.zeros((n,), **t),
         f0=torch.full((n, 3), 0.04, **t),
     )
+
+
+@torch.no_grad()
+def clearance_factors(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, lo: torch.Tensor,
+                      hi: torch.Tensor, margin: float, floor: float) -> torch.Tensor:
+    """[N] factors (<= 1) to multiply each Gaussian's scales by, so that ``margin`` standard deviations of it along
+    the world axis that separates it best from the box ``lo`` .. ``hi`` (the largest distance outside the box's
+    slab on that axis over that deviation) fit in that distance: then the Gaussian's ``margin``-sigma ellipsoid lies
+    wholly outside the box (the slab's face is a separating plane). Its mean does not move. One whose mean has
+    entered the box shrinks to ``floor`` (a length) along that axis. 1 where nothing needs to change; applying the
+    factors and computing them again gives 1 (up to float rounding)."""
+    rot = quats_to_rotmats(quats)
+    var = (rot * rot * torch.exp(2 * log_scales)[:, None, :]).sum(-1)  # [N, 3]: Sigma_aa = sum_i R_ai^2 s_i^2
+    sigma = var.clamp_min(0).sqrt()
+    outside = torch.maximum(lo - means, means - hi)  # [N, 3], > 0 outside that axis's slab
+    axis = (outside / (margin * sigma).clamp_min(1e-30)).argmax(1, keepdim=True)
+    d, s = outside.gather(1, axis).squeeze(1), sigma.gather(1, axis).squeeze(1)
+    target = torch.clamp_min(d / margin, floor)
+    return torch.clamp(target / s.clamp_min(1e-30), max=1.0)

@@ -37,7 +37,7 @@ from .anchors import Anchors, facing_surfels
 from .batches import RayBatcher
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
-from .far_field import far_field_gaussians
+from .far_field import clearance_factors, far_field_gaussians
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane_fill_gaussians,
@@ -130,6 +130,9 @@ class Trainer:
         # Gaussians the mirror fills placed (seen only in reflections): no buffer sees their material
         self.reflected = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self._reflected_rows: torch.Tensor | None = None
+        # the far field's Gaussians (far_field_margin keeps them out of the captured room's box)
+        self.far = torch.zeros_like(self.reflected)
+        self._far_rows: torch.Tensor | None = None
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
         for d in self.decisions:
@@ -317,16 +320,19 @@ class Trainer:
         return self.extent * math.exp((1 - t) * math.log(lr.position_init) + t * math.log(lr.position_final))
 
     def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None,
-                 anchored: bool = False, prior: bool = False, fixed: bool = False, matte: bool = False) -> None:
+                 anchored: bool = False, prior: bool = False, fixed: bool = False, matte: bool = False,
+                 far: bool = False) -> None:
         """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
         now, see anchors.py, and matte; ``prior``: a prior's, see ``self.prior``; ``fixed``: nothing of theirs
-        trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``), keeping Adam's state and the
+        trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``; ``far``: the far field's), keeping Adam's state and the
         anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
             self.reflected = self.reflected[keep.to(self.reflected.device)]
             self.fixed = self.fixed[keep.to(self.fixed.device)]
+            self.far = self.far[keep.to(self.far.device)]
+            self._far_rows = None
             self.prune_memory = self.prune_memory[keep.to(self.prune_memory.device)]
             self._prior_rows = self._reflected_rows = self._fixed_rows = None
         if extra is not None:
@@ -336,6 +342,8 @@ class Trainer:
                                                                    dtype=torch.bool, device=self.reflected.device)])
             self.fixed = torch.cat([self.fixed, torch.full((len(extra),), fixed, dtype=torch.bool,
                                                            device=self.fixed.device)])
+            self.far = torch.cat([self.far, torch.full((len(extra),), far, dtype=torch.bool, device=self.far.device)])
+            self._far_rows = None
             self.prune_memory = torch.cat([self.prune_memory, torch.full((len(extra), self.prune_memory.shape[1]),
                                                                          float("nan"), device=self.prune_memory.device)])
             self._prior_rows = self._reflected_rows = self._fixed_rows = None
@@ -385,6 +393,21 @@ class Trainer:
         if len(rows):
             ls[rows, axis[rows]] = cap
 
+    def _keep_far_field_out(self) -> None:
+        """``far_field_margin``: the far field's Gaussians shrunk (``far_field.clearance_factors``) until that many
+        of their standard deviations lie outside the captured room's box (``_captured_box``, kept from when the far
+        field was added); one that has moved inside shrinks to 1e-4 x the scene's size."""
+        if self._far_rows is None:
+            self._far_rows = torch.nonzero(self.far).reshape(-1).to(self.params["means"].device)
+        rows = self._far_rows
+        if not len(rows):
+            return
+        ls = self.params["log_scales"]
+        lo, hi = (b.to(ls) for b in self._thickness_box)
+        factor = clearance_factors(self.params["means"][rows], self.params["quats"][rows], ls[rows], lo, hi,
+                                   self.config.far_field_margin, 1e-4 * self.scene_size)
+        ls[rows] += factor.log()[:, None]
+
     @torch.no_grad()
     def _clamp(self) -> None:
         self.params["diffuse"].clamp_(min=0.0)
@@ -392,6 +415,8 @@ class Trainer:
         self.params["f0"].clamp_(0.0, 1.0)
         if self.config.max_thickness > 0:
             self._clamp_thickness()
+        if self.config.far_field_margin > 0 and self._thickness_box is not None:
+            self._keep_far_field_out()
         self.anchors.project(self.params["means"], self.params["quats"], self.params["log_scales"])
 
     # ----------------------------------------------------------------- steps
@@ -587,7 +612,7 @@ class Trainer:
                 room = [f[0] for f in fills] + placed
                 visible = self._seen_from_cameras(scene, room, ff.means) >= cfg.far_field_hidden
                 ff = ff.subset(visible)
-            self._replace(extra=ff)
+            self._replace(extra=ff, far=True)
             self.far_field_added = True
             log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box "
                      "%s .. %s; %d drawn, those no training camera sees past the room left out)", self.step, len(ff),
@@ -848,6 +873,7 @@ class Trainer:
             "prior": self.prior.clone(),
             "reflected": self.reflected.clone(),
             "fixed": self.fixed.clone(),
+            "far": self.far.clone(),
             "prune_order": self._prune_order, "prune_round": self._prune_round,
             "prune_memory": self.prune_memory.clone(),
             "thickness_box": self._thickness_box,
@@ -867,10 +893,11 @@ class Trainer:
         self.prior = state.get("prior", torch.zeros(len(self.params["means"]), dtype=torch.bool)).to(self.device)
         self.reflected = state.get("reflected", torch.zeros_like(self.prior)).to(self.device)
         self.fixed = state.get("fixed", torch.zeros_like(self.prior)).to(self.device)
+        self.far = state.get("far", torch.zeros_like(self.prior)).to(self.device)
         self._prune_order, self._prune_round = state.get("prune_order"), state.get("prune_round", 0)
         self._thickness_box = state.get("thickness_box")
         self.prune_memory = state.get("prune_memory", torch.zeros((len(self.prior), 0))).to(self.device)
-        self._prior_rows = self._reflected_rows = self._fixed_rows = None
+        self._prior_rows = self._reflected_rows = self._fixed_rows = self._far_rows = None
         self.anchors = Anchors(self.device, self.params["means"].dtype)
         if "anchors" in state:
             self.anchors.load_state_dict(state["anchors"])
