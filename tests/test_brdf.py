@@ -18,6 +18,9 @@ from tests import _numeric as nm
 from models.pathtrace.brdf import (
     SMITH_MODELS,
     eval_specular,
+    dielectric_weight,
+    fresnel,
+    fresnel_dielectric,
     fresnel_f90,
     fresnel_schlick,
     ggx_d,
@@ -102,6 +105,37 @@ def test_fresnel_f90_matte_reflects_nothing_real_materials_unchanged():
         fresnel_f90(f0, "fresnel")
 
 
+def test_fresnel_dielectric_is_snells_and_blends_to_schlick_for_metals():
+    """"dielectric": the exact unpolarised Fresnel of a dielectric with eta = (1 + sqrt F0) / (1 - sqrt F0), here
+    against s- and p-reflectances from Snell's law (F0 0.04 is eta 1.5: 0.0892 at 60 degrees, where Schlick gives
+    0.070); F(1) = F0, F(0) = 1, F0 = 0 reflects nothing; up to mean F0 0.08 it is the whole term, from 0.2 it is
+    schlick_f90's, linear in between; the other modes have no dielectric share."""
+    cos = torch.linspace(0.02, 1.0, 50, dtype=F64)
+    for f in (0.02, 0.04, 0.08, 0.3):
+        eta = (1 + math.sqrt(f)) / (1 - math.sqrt(f))
+        ct = torch.sqrt(1 - (1 - cos ** 2) / eta ** 2)
+        rs = ((cos - eta * ct) / (cos + eta * ct)) ** 2
+        rp = ((eta * cos - ct) / (eta * cos + ct)) ** 2
+        f0 = torch.full((50, 3), f, dtype=F64)
+        assert torch.allclose(fresnel_dielectric(f0, cos)[:, 0], (rs + rp) / 2, atol=1e-12)
+    f0 = torch.tensor([[0.04] * 3, [0.0] * 3], dtype=F64)
+    half = torch.full((2,), 0.5, dtype=F64)
+    assert fresnel_dielectric(f0, half)[0, 0].item() == pytest.approx(0.0892, abs=5e-4)
+    assert fresnel_schlick(f0, half)[0, 0].item() == pytest.approx(0.07, abs=1e-9)
+    assert torch.allclose(fresnel_dielectric(f0, torch.ones(2, dtype=F64)), f0)
+    assert fresnel_dielectric(f0, torch.zeros(2, dtype=F64))[0, 0].item() == pytest.approx(1.0)
+    assert torch.all(fresnel_dielectric(f0[1:].expand(50, 3), cos) == 0)
+    grey = torch.tensor([0.04, 0.08, 0.14, 0.2, 0.9], dtype=F64)[:, None].expand(5, 3)
+    w = dielectric_weight(grey, "dielectric")
+    assert torch.allclose(w[:, 0], torch.tensor([1.0, 1.0, 0.5, 0.0, 0.0], dtype=F64))
+    c = torch.full((5,), 0.3, dtype=F64)
+    both = fresnel(grey, c, fresnel_f90(grey, "dielectric"), w)
+    assert torch.allclose(both[:2], fresnel_dielectric(grey, c)[:2])
+    assert torch.allclose(both[3:], fresnel_schlick(grey, c)[3:])
+    assert torch.allclose(both[2], 0.5 * (fresnel_dielectric(grey, c)[2] + fresnel_schlick(grey, c)[2]))
+    assert dielectric_weight(grey, "schlick_f90") is None and dielectric_weight(grey, "schlick") is None
+
+
 def test_ggx_d_projected_area_normalised():
     # int D(h) (n.h) dw_h = 2 pi int_0^1 D(c) c dc = 1, including near-mirror alpha = 1e-4.
     for alpha in (1e-4, 0.01, 0.25, 1.0):
@@ -181,6 +215,12 @@ def test_weight_is_eval_over_pdf(name, smith):
     ref = eval_specular(n[v], wo[v], s.wi[v], r[v], f0[v], smith, f90[v]) / p[v, None]
     assert torch.allclose(s.weight[v], ref, rtol=1e-4, atol=1e-12)
     assert torch.allclose(s.wi.norm(dim=-1), torch.ones_like(r), atol=1e-12)
+    f0 = f0 * 5  # mean F0 over 0-0.3: exact dielectric, blended and Schlick rows (fresnel = "dielectric")
+    f90, diel = fresnel_f90(f0, "dielectric"), dielectric_weight(f0, "dielectric")
+    assert ((diel > 0) & (diel < 1)).float().mean() > 0.1 and (diel == 1).float().mean() > 0.2
+    s = sample(n, wo, r, f0, u1, u2, smith, f90, diel)
+    ref = eval_specular(n[v], wo[v], s.wi[v], r[v], f0[v], smith, f90[v], diel[v]) / p[v, None]
+    assert torch.allclose(s.weight[v], ref, rtol=1e-4, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", SAMPLERS)

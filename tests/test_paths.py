@@ -81,6 +81,9 @@ def test_matte_surface_reflects_nothing_with_schlick_f90(backend):
     assert torch.all(specular(0.0, "schlick_f90") == 0)
     assert torch.equal(specular(0.04, "schlick_f90"), specular(0.04, "schlick"))
     assert specular(0.04, "schlick").amax() > 1e-3
+    # "dielectric": the exact Fresnel reflects nothing at F0 = 0 either; at 0.04 it differs from Schlick's
+    assert torch.all(specular(0.0, "dielectric") == 0)
+    assert not torch.allclose(specular(0.04, "dielectric"), specular(0.04, "schlick_f90"))
 
 
 @pytest.mark.parametrize("backend", ["reference", "warp"])

@@ -23,7 +23,7 @@ from typing import Callable
 import torch
 
 from models.gaussians import Gaussians
-from models.pathtrace.brdf import DEFAULT_FRESNEL, FRESNEL_MODES, fresnel_f90, fresnel_schlick, reflect
+from models.pathtrace.brdf import DEFAULT_FRESNEL, FRESNEL_MODES, dielectric_weight, fresnel, fresnel_f90, reflect
 from models.pathtrace.sampling import sample_specular
 from models.tracer.output import TraceOutput
 
@@ -45,6 +45,7 @@ class PathConfig:
     sampler: str = "vndf"  # vndf (visible normals, default) | ndf (half-vector, as the reference)
     grad_roughness_power: float = 3.0  # bounce gradients scaled by (1 - roughness_prev)^power
     fresnel: str = DEFAULT_FRESNEL  # schlick_f90 (F90 = min(1, 50 mean F0): F0 = 0 reflects nothing) | schlick
+    # | dielectric (the exact dielectric Fresnel up to F0 0.08, schlick_f90 from 0.2: brdf.dielectric_weight)
     # (F90 = 1, the paper's; models trained before the option read it: models/trained.py)
     min_throughput: float = 0.0  # a path stops where its throughput (max over RGB) falls below this: 0 = never
     # (renders: the estimate is exact in expectation); training sets it (ReconstructConfig.min_throughput)
@@ -150,13 +151,14 @@ def trace_paths(
                        device=o.device if generator is None else generator.device)
         if u.device != o.device:  # CPU draws for GPU rays: copied from pinned memory, the host does not wait for it
             u = u.pin_memory().to(o.device, non_blocking=True)
-        f90 = fresnel_f90(f0, config.fresnel)
-        wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler, f90=f90)
+        f90, dielectric = fresnel_f90(f0, config.fresnel), dielectric_weight(f0, config.fresnel)
+        wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler, f90=f90,
+                                               dielectric=dielectric)
         # (no branch on "any mirror": selecting costs less than a device read-back)
         mirror = rough_raw.reshape(-1) <= config.min_roughness
         cos_o = (n * wo).sum(-1).clamp(0.0, 1.0)
         wi = torch.where(mirror[:, None], reflect(d, n), wi)
-        weight = torch.where(mirror[:, None], fresnel_schlick(f0, cos_o, f90), weight)
+        weight = torch.where(mirror[:, None], fresnel(f0, cos_o, f90, dielectric), weight)
         valid = torch.where(mirror, cos_o > 0, valid)
         keep = keep & valid & (weight.amax(-1) > 0)
         if config.min_throughput > 0:

@@ -34,7 +34,7 @@ from models.pathtrace.brdf import (
     _smith_a,
     check_smith,
     dot,
-    fresnel_schlick,
+    fresnel,
     ggx_d,
     positive,
     roughness_to_alpha,
@@ -82,13 +82,13 @@ def _check_inputs(n, wo, roughness, f0, u1, u2, smith):
     check_smith(smith)
 
 
-def _finish(n, t, b, wo_l, h_l, f0, pdf, factor, extra_valid, f90=None):
+def _finish(n, t, b, wo_l, h_l, f0, pdf, factor, extra_valid, f90=None, dielectric=None):
     """Shared tail: reflect wo about h in the local frame, weight = F(wo.h) * factor."""
     wo_h = dot(wo_l, h_l)
     wi_l = 2.0 * wo_h[..., None] * h_l - wo_l
     wi = safe_normalize(_to_world(wi_l, t, b, n))
     valid = (wo_l[..., 2] > 0) & (wi_l[..., 2] > 0) & extra_valid
-    f = fresnel_schlick(f0, wo_h, f90)
+    f = fresnel(f0, wo_h, f90, dielectric)
     w = f * factor(wi_l[..., 2].clamp(0.0, 1.0))[..., None]
     weight = torch.where(valid[..., None], w, torch.zeros_like(w))
     pdf = torch.where(wo_l[..., 2] > 0, pdf, torch.zeros_like(pdf))
@@ -97,7 +97,7 @@ def _finish(n, t, b, wo_l, h_l, f0, pdf, factor, extra_valid, f90=None):
 
 def sample_vndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: torch.Tensor,
                 u1: torch.Tensor, u2: torch.Tensor, smith: str = DEFAULT_SMITH,
-                f90: torch.Tensor | None = None) -> SpecularSample:
+                f90: torch.Tensor | None = None, dielectric: torch.Tensor | None = None) -> SpecularSample:
     """Visible-normal (VNDF) sampling of GGX, Heitz 2018.
 
     n, wo: [R, 3] unit; roughness: [R]; f0: [R, 3]; u1, u2: [R] uniform in [0, 1].
@@ -142,12 +142,12 @@ def sample_vndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: 
         # Smith forms (Schlick G1 <= exact G1); the clamp only removes float32 rounding.
         return (2.0 * smith_visibility(coc, ci, alpha, smith) * ci * (coc + ao)).clamp(max=1.0)
 
-    return _finish(n, t, b, wo_l, h_l, f0, pdf, factor, h_l[..., 2] > 0, f90)
+    return _finish(n, t, b, wo_l, h_l, f0, pdf, factor, h_l[..., 2] > 0, f90, dielectric)
 
 
 def sample_ndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: torch.Tensor,
                u1: torch.Tensor, u2: torch.Tensor, smith: str = DEFAULT_SMITH,
-               f90: torch.Tensor | None = None) -> SpecularSample:
+               f90: torch.Tensor | None = None, dielectric: torch.Tensor | None = None) -> SpecularSample:
     """Half-vector (NDF) sampling of GGX, h ~ D(h) (n.h), as the reference tracer.
 
     Shapes as `sample_vndf`. tan^2(theta_h) = alpha^2 u1 / (1 - u1), phi_h = 2 pi u2.
@@ -173,16 +173,18 @@ def sample_ndf(n: torch.Tensor, wo: torch.Tensor, roughness: torch.Tensor, f0: t
     def factor(ci):  # 4 V c_i (wo.h) / (n.h)
         return 4.0 * smith_visibility(co, ci, alpha, smith) * ci * wo_h.clamp_min(0.0) / positive(cos_h)
 
-    return _finish(n, t, b, wo_l, h_l, f0, pdf, factor, (wo_h > 0) & (cos2 > 0), f90)
+    return _finish(n, t, b, wo_l, h_l, f0, pdf, factor, (wo_h > 0) & (cos2 > 0), f90, dielectric)
 
 
 def sample_specular(n, wo, roughness, f0, u1, u2, method: str = "vndf",
-                    smith: str = DEFAULT_SMITH, f90: torch.Tensor | None = None) -> SpecularSample:
-    """Dispatch on `method` in {"vndf", "ndf"}; f90: the Schlick grazing reflectance ([..., 1], None = 1)."""
+                    smith: str = DEFAULT_SMITH, f90: torch.Tensor | None = None,
+                    dielectric: torch.Tensor | None = None) -> SpecularSample:
+    """Dispatch on `method` in {"vndf", "ndf"}; f90: the Schlick grazing reflectance ([..., 1], None = 1);
+    dielectric: the exact dielectric Fresnel's share ([..., 1], ``brdf.dielectric_weight``; None = Schlick)."""
     if method == "vndf":
-        return sample_vndf(n, wo, roughness, f0, u1, u2, smith, f90)
+        return sample_vndf(n, wo, roughness, f0, u1, u2, smith, f90, dielectric)
     if method == "ndf":
-        return sample_ndf(n, wo, roughness, f0, u1, u2, smith, f90)
+        return sample_ndf(n, wo, roughness, f0, u1, u2, smith, f90, dielectric)
     raise ValueError(f"method={method!r}: expected 'vndf' or 'ndf'")
 
 

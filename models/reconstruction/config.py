@@ -74,9 +74,11 @@ class ReconstructConfig:
                                     "cut short", minimum=0, maximum=1)
     sampler: str = setting(_PATH.sampler, "reflection sampling: vndf | ndf (reference); stored with the model",
                            enum=["vndf", "ndf"])
-    fresnel: str = setting(_PATH.fresnel, "Schlick Fresnel's grazing reflectance: schlick_f90 (F90 = min(1, 50 mean "
+    fresnel: str = setting(_PATH.fresnel, "the Fresnel term: schlick_f90 (Schlick's with F90 = min(1, 50 mean "
                            "F0): a surface with F0 = 0, a matte one, reflects nothing, as in the capture) | schlick "
-                           "(F90 = 1, the paper's: F0 = 0 still reflects (1 - cos)^5); stored with the model",
+                           "(F90 = 1, the paper's: F0 = 0 still reflects (1 - cos)^5) | dielectric (the exact "
+                           "Fresnel of a dielectric, eta from F0, up to F0 0.08, schlick_f90 from 0.2, blended "
+                           "between: Schlick's is 20 % low at 60 degrees for F0 0.04); stored with the model",
                            enum=list(FRESNEL_MODES))
     reflection_origin: str = setting(_PATH.reflection_origin, "where a reflection starts along the ray that met "
                                      "the surface: front (the mean depth of the hits blended while the "

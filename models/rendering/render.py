@@ -34,7 +34,7 @@ class RenderConfig:
     max_path_length: int | None = setting(None, "path segments (1 = no reflections); null = the model's "
                                           "(model.yaml)", minimum=1, maximum=16)
     sampler: str | None = setting(None, "vndf | ndf; null = the model's (model.yaml)", enum=["vndf", "ndf", None])
-    fresnel: str | None = setting(None, "schlick_f90 | schlick; null = the model's (model.yaml)",
+    fresnel: str | None = setting(None, "schlick_f90 | schlick | dielectric; null = the model's (model.yaml)",
                                   enum=[*FRESNEL_MODES, None])
     reflection_origin: str | None = setting(None, "front | expected (where a reflection starts: "
                                             "reconstruct.reflection_origin); null = the model's (model.yaml)",
