@@ -134,6 +134,8 @@ def test_fresnel_dielectric_is_snells_and_blends_to_schlick_for_metals():
     assert torch.allclose(both[3:], fresnel_schlick(grey, c)[3:])
     assert torch.allclose(both[2], 0.5 * (fresnel_dielectric(grey, c)[2] + fresnel_schlick(grey, c)[2]))
     assert dielectric_weight(grey, "schlick_f90") is None and dielectric_weight(grey, "schlick") is None
+    with pytest.raises(ValueError, match="fresnel='fresnell'"):
+        dielectric_weight(grey, "fresnell")
 
 
 def test_ggx_d_projected_area_normalised():

@@ -194,8 +194,9 @@ def dielectric_weight(f0: torch.Tensor, mode: str = DEFAULT_FRESNEL) -> torch.Te
     Schlick's curve is a fit to metals; for a dielectric it is 20 % low at 60 degrees (F0 0.04: 0.070 against
     0.089) and high past 75, so a glossy floor's highlights, F0 and roughness right, came out 15-25 % dark against
     Mitsuba's principled (whose dielectric lobe uses the exact Fresnel)."""
+    if mode not in FRESNEL_MODES:
+        raise ValueError(f"fresnel={mode!r}: expected one of {FRESNEL_MODES}")
     if mode != "dielectric":
-        fresnel_f90(f0, mode)  # validates the mode
         return None
     lo, hi = DIELECTRIC_F0
     return ((hi - f0.mean(-1, keepdim=True)) / (hi - lo)).clamp(0.0, 1.0)

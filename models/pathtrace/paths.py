@@ -45,8 +45,8 @@ class PathConfig:
     sampler: str = "vndf"  # vndf (visible normals, default) | ndf (half-vector, as the reference)
     grad_roughness_power: float = 3.0  # bounce gradients scaled by (1 - roughness_prev)^power
     fresnel: str = DEFAULT_FRESNEL  # schlick_f90 (F90 = min(1, 50 mean F0): F0 = 0 reflects nothing) | schlick
-    # | dielectric (the exact dielectric Fresnel up to F0 0.08, schlick_f90 from 0.2: brdf.dielectric_weight)
-    # (F90 = 1, the paper's; models trained before the option read it: models/trained.py)
+    # (F90 = 1, the paper's; models trained before the option read it: models/trained.py) | dielectric (the exact
+    # dielectric Fresnel up to F0 0.08, schlick_f90 from 0.2: brdf.dielectric_weight)
     min_throughput: float = 0.0  # a path stops where its throughput (max over RGB) falls below this: 0 = never
     # (renders: the estimate is exact in expectation); training sets it (ReconstructConfig.min_throughput)
     reflection_origin: str = "front"  # where a reflection starts along the ray that met the surface: front (the
