@@ -745,3 +745,29 @@ def test_the_far_field_is_left_out_where_no_camera_sees_past_the_room(book):
         o = torch.tensor(c, dtype=torch.float32).expand(len(left), 3).contiguous()
         d = torch.nn.functional.normalize(left - o, dim=-1)
         assert float(t.trace(o, d, first[0.05]).transmittance.max()) < 0.05
+
+
+def test_frozen_highlight_emitters_keep_their_geometry_and_are_not_relit(demo):
+    """``highlight_frozen``: the emitters the highlight fill places at the end of warm-up join as priors (geometry
+    frozen: trained free, those off the light grew into sheets under the ceiling) with the mirror fills' matte
+    rule, so the plane fill's relighting, which follows them, leaves their radiance alone."""
+    capture, init = demo
+    cfg = dict(SMALL, iterations=12, warmup=10, prune_every=0, sphere_fill=False, highlight_frozen=True)
+    trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    n_fill = int(trainer.prior.sum())
+    for _ in range(11):
+        trainer.train_step()
+    line = next(d for d in trainer.decisions if "emitting Gaussians where" in d)
+    added = int(line.split("added ")[1].split()[0])
+    assert added > 0, line
+    rows = slice(len(trainer.prior) - added, None)  # the last fill added at that step
+    assert bool(trainer.prior[rows].all()) and bool(trainer.reflected[rows].all())
+    assert float(trainer.params["diffuse"][rows].mean()) > 1.0  # still lights: not relit like the plane fill
+    relit = next(d for d in trainer.decisions if "plane fill relit" in d)
+    assert f"{n_fill} of its {n_fill} Gaussians" in relit, relit
+    for p in trainer.params.values():
+        p.grad = torch.ones_like(p)
+    trainer._freeze_priors()
+    for name in ("means", "quats", "log_scales", "f0", "roughness"):
+        assert bool((trainer.params[name].grad[rows] == 0).all()), name
+    assert bool((trainer.params["diffuse"].grad[rows] == 1).all())

@@ -13,7 +13,8 @@ from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
 from models.reconstruction.reflection_fill import (box_exit, diffuse_level, highlight_fill_gaussians, matte_material,
-                                                reflection_fill_gaussians, seen_empty, sweep_box_scale)
+                                                reflection_fill_gaussians, seen_empty, snap_to_planes,
+                                                sweep_box_scale)
 
 
 def _gaussians(means: torch.Tensor, scale: float, opacity: float) -> Gaussians:
@@ -207,6 +208,44 @@ def test_highlight_fill_finds_a_lamp_beyond_the_box_by_plane_sweep():
     assert (lights.means[:, :2].abs() < 0.4 + 0.05).all()  # on the lamp's square
     _, _, purity, notes = sweep_box_scale(*_open_rays(rays), torch.full((3,), -1.1), torch.full((3,), 1.1))
     assert purity[0] < max(purity) - 0.05 and not notes  # the unscaled box is clearly worse; a true minimum
+
+
+def test_highlight_fill_moves_emitters_onto_a_wall_placed_just_beyond_them():
+    """``planes``: a ceiling room closing placed at z = 1.75, 0.15 beyond the lamp the sweep found at 1.6 (two
+    sweep steps of the padded box's half-size 1.1 allow 0.22): every emitter moves along its ray onto it (one
+    box step short). A ceiling at 2.0 is farther than that: a lamp hanging below it stays where the sweep put it."""
+    corners = torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+    scene = _gaussians(corners, 0.01, 0.1)
+    rays = _lamp_over_mirror()
+    swept, _ = highlight_fill_gaussians(rays, reference_trace, scene)
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, planes=[(np.array([0.0, 0, 1]), 1.75)])
+    assert stats["snapped"] == len(lights) == len(swept) > 200, stats
+    assert (lights.means[:, 2] - 1.75).abs().max() < 0.01 and (lights.means[:, 2] < 1.75).all()
+    # each moved along its own ray: back along the move, the mirror point it left, and a camera's ray to that
+    # point reflects into the move's direction
+    move = torch.nn.functional.normalize(lights.means - swept.means, dim=-1)
+    mirror = swept.means - ((swept.means[:, 2] + 0.9) / move[:, 2])[:, None] * move
+    assert (mirror[:, :2].abs() < 0.8 + 1e-4).all()
+    cams = torch.unique(rays.origins, dim=0)
+    seen = torch.nn.functional.normalize(mirror[:, None] - cams[None], dim=-1) * torch.tensor([1.0, 1.0, -1.0])
+    assert ((seen - move[:, None]).norm(dim=-1).min(dim=1).values < 1e-3).all()
+    far, far_stats = highlight_fill_gaussians(rays, reference_trace, scene, planes=[(np.array([0.0, 0, 1]), 2.0)])
+    assert far_stats["snapped"] == 0 and torch.equal(far.means, swept.means)
+
+
+def test_snap_to_planes_takes_the_first_wall_ahead_within_the_tolerance():
+    pos = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    r = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.0, -1.0],
+                                                    [1.0, 0.0, 0.0]]), dim=-1)
+    planes = [(np.array([0.0, 0.0, 1.0]), 0.2), (np.array([1.0, 0.0, 0.0]), 0.1)]  # a ceiling, a near side wall
+    moved = snap_to_planes(pos, r, planes, torch.full((3,), 0.25), offset=0.0)
+    assert moved == 3  # the third heads away from both walls
+    torch.testing.assert_close(pos[0], torch.tensor([0.0, 0.0, 0.2]))  # straight up onto the ceiling
+    torch.testing.assert_close(pos[1], torch.tensor([0.1, 0.0, 0.1]))  # the side wall comes first on its ray
+    torch.testing.assert_close(pos[2], torch.zeros(3))
+    torch.testing.assert_close(pos[3], torch.tensor([0.1, 0.0, 0.0]))
+    pos = torch.zeros(1, 3)
+    assert snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.1), offset=0.0) == 0  # 0.2 short: beyond 0.1
 
 
 @pytest.mark.parametrize("lamp_z", [5.0, 8.0])

@@ -185,6 +185,15 @@ class ReconstructConfig:
                                       "planes: a ceiling lamp behind the cameras) gets an emitter there, at the "
                                       "plane's front. Off: measured worse at two seeds (zoo_mirror_only -0.5 to "
                                       "-0.9 dB, the other rooms within the spread; README, twenty-third session)")
+    highlight_to_walls: bool = setting(False, "highlight fill: an emitter the box sweep leaves at most two of its "
+                                       "steps short of a wall room closing placed moves along its ray onto the "
+                                       "wall (the sweep tells a lamp's distance to ~10 cm, the wall better: the "
+                                       "demo's ceiling lamp, 2.49 m up, sat at 2.31 under a ceiling placed at 2.46)")
+    highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
+                                     "(the plane fill's priors' rule) and their matte material (the mirror fills' "
+                                     "rule); colour and opacity train. Trained free, those off the light dimmed and "
+                                     "grew into sheets up to 0.9 m across just under the ceiling, one over the "
+                                     "demo's lamp (its gold cube's top then reflected 0.29 of the true light)")
     fill_anchor: float = setting(0.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
                                  "in mirrors) are surfels facing the views that placed them: along that direction "
                                  "they stay within this many of their initial sizes of where the fill put them and "

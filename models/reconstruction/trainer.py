@@ -44,7 +44,7 @@ from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane
                          relight_plane_fill, stereo_on_planes)
 from .sphere_fill import sphere_fill_gaussians
 from .back_fill import back_fill
-from .room_closing import close_room, keep_inside
+from .room_closing import close_room, keep_inside, placed_walls
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
@@ -633,13 +633,17 @@ class Trainer:
                 later = [f[0] for f in (walls, grown, closed, planar) if f is not None and f[0] is not None]
                 later = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in later])
                          if later and cfg.highlight_on_fill else None)  # the planes placed since warm-up
+                planes = placed_walls(self._room) if cfg.highlight_to_walls else None
                 lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
-                                                         fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=later)
+                                                         fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=later,
+                                                         planes=planes)
                 stats["inside"] = keep_inside(lights.means, self._room) if lights is not None else 0
                 self._add_fill(lights, stats, "%(added)d emitting Gaussians where %(highlight_rays)d open highlight "
                                "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "
-                               "searched %(box_scale_range)s; %(inside)d moved in front of a wall placed; "
-                               "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)")
+                               "searched %(box_scale_range)s; %(snapped)d moved onto a wall placed just beyond; "
+                               "%(inside)d moved in front of a wall placed; "
+                               "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)",
+                               prior=cfg.highlight_frozen, matte=cfg.highlight_frozen)
         relight_at = cfg.warmup + int(cfg.plane_fill_relight_at * (cfg.iterations - cfg.warmup))
         if (reflections and cfg.plane_fill_relight and self._room is not None and not self.plane_fill_relit
                 and self.step >= relight_at):
