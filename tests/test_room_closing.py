@@ -61,7 +61,7 @@ def test_the_walls_only_curved_mirrors_show_are_placed_where_they_are(spheres):
         assert len(inl) == 0
         axis = int(np.argmax(np.abs(n)))
         placed["xyz"[axis]] = d / n[axis]
-    assert placed["y"] is not None and abs(placed["y"] - 2.5) < 0.08, info  # the ceiling (the coarse sweep: 0.12 low)
+    assert placed["y"] is not None and abs(placed["y"] - 2.5) < 0.15, info  # the ceiling
     assert placed["z"] is not None and abs(placed["z"] - 2.0) < 0.15, info  # the wall behind the cameras
     assert "+y at" in info["walls"] and "+z at" in info["walls"]
     # every wall Gaussian lies on a placed wall, inside the room's other bounds, matte, facing into the room
@@ -74,6 +74,18 @@ def test_the_walls_only_curved_mirrors_show_are_placed_where_they_are(spheres):
     # the plane fill then reaches them: the side walls and the floor run on to the new wall
     grown, more = extend_plane_fill(room, rays, points, count=8000)
     assert grown is not None and "z" in more["grown"] and float(grown.means[:, 2].max()) > placed["z"] - 0.1
+
+
+def test_refined_walls_lie_closer_than_the_coarse_sweeps_steps(spheres):
+    """``refine``: the parabola through the fine sweep round the coarse minimum (14 % steps: 0.12 m low for this
+    ceiling) puts the ceiling within 0.08 m of y = 2.5; the wall behind the cameras stays within 0.15 of z = 2."""
+    _, stats = plane_fill_gaussians(spheres)
+    room = stats["room"]
+    n_bound = len(room.bound)
+    walls, _, info = close_room(room, spheres, Tracer(TracerConfig(num_threads=2)).trace, _seen_surfaces(spheres),
+                                count=8000, refine=True)
+    placed = {"xyz"[int(np.argmax(np.abs(n)))]: d / n[int(np.argmax(np.abs(n)))] for n, d, _ in room.bound[n_bound:]}
+    assert abs(placed["y"] - 2.5) < 0.08 and abs(placed["z"] - 2.0) < 0.15, info
 
 
 def test_a_side_whose_reflections_agree_at_infinity_stays_open(spheres):

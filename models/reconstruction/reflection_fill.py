@@ -319,9 +319,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     ``planes``: the walls room closing placed, as (n, s) with n . p = s on the wall and n pointing out of the room.
     An emitter that the sweep leaves short of one, by at most ``SNAP_STEPS`` of the sweep's steps (the box's
     half-extent along n x 0.1), moves along its ray onto the wall's room side (``snap_to_planes``): the sweep
-    tells the light's distance to ~10 cm, the wall, fitted to thousands of sharp reflections, better (the demo's
-    ceiling lamp, 2.49 m up: emitters at 2.31 under a ceiling placed at 2.46); a lamp hanging farther below it
-    stays where the sweep put it. ``snapped`` in the statistics counts them."""
+    tells the light's distance to ~10-30 cm, biased short (its purity is flat over 2-3 steps: the demo's ceiling
+    lamp, 2.49 m up, got emitters at 2.22-2.31, zoo_spheres' at 2.18), the wall, fitted to thousands of sharp
+    reflections, better (the demo's refined ceiling: 2.47); a lamp hanging farther below it stays where the sweep
+    put it. ``snapped`` in the statistics counts them (``reconstruct.highlight_to_walls``)."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
              "on_fill": 0, "on_fill_added": 0, "snapped": 0, "notes": []}
     t = rays.targets

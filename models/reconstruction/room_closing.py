@@ -9,8 +9,8 @@ cameras).
 
 A room is closed: opposite a bounding plane there is, usually, another. For each bounding plane with no
 opposite one (an OPEN side, direction n), a wall facing back (normal -n) is swept along n from the box's face
-outwards (``SWEEP``: 40 offsets, 2 % to 3x the room's size beyond the face, 14 % apart; the chosen minimum is
-then refined by a parabola through ``REFINE`` offsets over its two neighbours on each side, ``_refine``). At each
+outwards (``SWEEP``: 40 offsets, 2 % to 3x the room's size beyond the face, 14 % apart; with ``refine`` the chosen
+minimum is then refined by a parabola through ``REFINE`` offsets over its two neighbours on each side). At each
 offset the sharp mirror reflections of the training pixels (roughness < ``CLOSE_ROUGHNESS``, from the depth /
 normal / F0 buffers; open through the warmed-up model) that head that way and land on the hypothetical wall
 inside the other bounding planes are binned in cells on it; the radiance each brings (``specular / Fresnel(F0)``, log luminance) is averaged
@@ -166,7 +166,7 @@ def _reflections(rays, trace_fn, gaussians: Gaussians, glossy: bool, seed: int) 
 
 
 def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls: list, described: list,
-                 stats: dict, max_walls: int, label: str) -> np.ndarray:
+                 stats: dict, max_walls: int, label: str, refine: bool = False) -> np.ndarray:
     """Close ``sides`` (removed from the list as they close) one at a time, the clearest first, with the
     reflections ``refl``: each wall found goes to ``walls`` and joins ``room.bound``; returns the box carried out
     to the walls."""
@@ -205,8 +205,9 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
         ratio, n, s, face, where, support = best
         sides[:] = [m for m in sides if m is not n]
         going = r @ n > 0.05
-        s, support = _refine(x[going], r[going], lum[going], view[going], n, s, face + size * SWEEP, bounds,
-                             room.tol, cell, support)
+        if refine:
+            s, support = _refine(x[going], r[going], lum[going], view[going], n, s, face + size * SWEEP, bounds,
+                                 room.tol, cell, support)
         _, _, landed = _score(x[going], r[going], lum[going], view[going], n, s, bounds, room.tol, cell)
         tt = (s - x[going] @ n) / (r[going] @ n)
         keep = landed & refl["ordinary"][going]
@@ -226,13 +227,14 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
 @torch.no_grad()
 def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: int = 20000, opacity: float = 0.9,
                known: np.ndarray | None = None, max_walls: int = 3, seed: int = 0,
-               dtype=torch.float32) -> tuple[Gaussians | None, np.ndarray | None, dict]:
+               dtype=torch.float32, refine: bool = False) -> tuple[Gaussians | None, np.ndarray | None, dict]:
     """Walls on the room's open sides where sharp reflections agree on them, then, on the sides still open, where
     glossy ones do (module docstring). ``room``: the plane fill's (its bounding planes grow by the walls placed);
     ``gaussians``: the warmed-up scene with what the other fills placed (which reflections are still open);
     ``known``: points mirror stereo placed (a side they reach, the box's face there set by them, is known: not
     swept -- an object seen only in a planar mirror made its depth the sweep's minimum, and a wall across the whole
-    room there: mirror_book's book). Returns (Gaussians or None, the walls' points [M, 3] or None, statistics:
+    room there: mirror_book's book). ``refine``: each wall's offset refined past the coarse sweep (``_refine``;
+    ``reconstruct.close_room_refine``). Returns (Gaussians or None, the walls' points [M, 3] or None, statistics:
     ``walls`` (a description), ``added``, ``rays`` (the sharp pass's open reflections), ``glossy_rays`` (the glossy
     pass's; 0 when it did not run), ``notes``)."""
     stats = {"walls": "none", "added": 0, "rays": 0, "glossy_rays": 0, "notes": []}
@@ -253,7 +255,7 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
         if refl is None or "x" not in refl:
             continue
         corners = _sweep_sides(refl, sides, room, corners, walls, described, stats, max_walls,
-                               ", glossy reflections" if glossy else "")
+                               ", glossy reflections" if glossy else "", refine=refine)
     if not walls:
         return None, None, stats
     stats["walls"] = "; ".join(described)

@@ -597,7 +597,8 @@ class Trainer:
                 seen = Gaussians.cat([scene] + [f[0].to(scene.device, scene.dtype) for f in fills if f[0] is not None]
                                      + ([grown[0]] if grown is not None and grown[0] is not None else []))
                 wall, points, stats = close_room(self._room, self.rays, self.backend.trace, seen,
-                                                 cfg.plane_fill_count, known=shown, seed=cfg.seed)
+                                                 cfg.plane_fill_count, known=shown, seed=cfg.seed,
+                                                 refine=cfg.close_room_refine)
                 walls = (wall, stats, "%(added)d Gaussians on walls no training view looks at, placed where "
                          "%(rays)d open sharp reflections (then, on the sides still open, %(glossy_rays)d glossy "
                          "ones) agree on them: %(walls)s")
