@@ -201,7 +201,7 @@ class ReconstructConfig:
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "
                                      "grew into sheets up to 0.9 m across just under the ceiling, one over the "
-                                     "demo's lamp (its gold cube's top then reflected 0.29 of the true light). "
+                                     "demo's lamp (its gold cube's top then reflected 0.38 of the true specular). "
                                      "Off: frozen, the demo's specular lost 1.8 dB at seed 1 (the emitters no "
                                      "longer grow to tile the lamp) and zoo_spheres 0.5 dB final (README)")
     fill_anchor: float = setting(0.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
