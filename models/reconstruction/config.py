@@ -183,8 +183,8 @@ class ReconstructConfig:
                                       "sweep round the coarse one's minimum (whose steps are 14 %: ~10 cm at a "
                                       "ceiling): zoo_spheres' ceiling 0.12 -> 0.05 m low, the demo's 0.11 -> 0.03. "
                                       "Off: trained with it alone, the demo lost 0.44 / 0.31 dB at seeds 0 / 1 and "
-                                      "zoo_spheres 0.70 at seed 0; with highlight_to_walls as well the demo scored "
-                                      "+0.34 / -0.20 (README, twenty-ninth session)")
+                                      "zoo_spheres 0.09 at seed 1; with highlight_to_walls as well the demo scored "
+                                      "+0.34 / -0.20 and zoo_spheres -0.70 at seed 0 (README, twenty-ninth session)")
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
     highlight_on_fill: bool = setting(False, "highlight fill: a highlight reflection that ends on the plane fill "
                                       "or on a wall placed after warm-up (a light on an unseen part of the room's "
@@ -196,7 +196,7 @@ class ReconstructConfig:
                                        "wall (the sweep tells a lamp's distance to ~10 cm, the wall better: the "
                                        "demo's ceiling lamp, 2.49 m up, sat at 2.22-2.31 under a ceiling placed "
                                        "at 2.47). Measured with close_room_refine: demo +0.34 / -0.20 dB at seeds "
-                                       "0 / 1 (README, twenty-ninth session); off until more rooms are measured")
+                                       "0 / 1, zoo_spheres -0.70 at seed 0 (README, twenty-ninth session)")
     highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "
