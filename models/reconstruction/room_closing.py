@@ -13,10 +13,11 @@ outwards (``SWEEP``: 40 offsets, 2 % to 3x the room's size beyond the face, 14 %
 minimum is then refined by a parabola through ``REFINE`` offsets over its two neighbours on each side). At each
 offset the sharp mirror reflections of the training pixels (roughness < ``CLOSE_ROUGHNESS``, from the depth /
 normal / F0 buffers; open through the warmed-up model) that head that way and land on the hypothetical wall
-inside the other bounding planes are binned in cells on it; the radiance each brings (``specular / Fresnel(F0)``, log luminance) is averaged
-per (cell, view), and the score is the spread of the views' averages within a cell (robust: 95th-percentile
-clipped), relative to the spread of all of them. Where the wall really is, rays from different views and
-different curved mirrors that land in one cell saw the same patch: the score has its minimum there.
+inside the other bounding planes are binned in cells on it; the radiance each brings (``specular /
+Fresnel(F0)``, log luminance) is averaged per (cell, view), and the score is the spread of the views' averages
+within a cell (robust: 95th-percentile clipped), relative to the spread of all of them. Where the wall really is,
+rays from different views and different curved mirrors that land in one cell saw the same patch: the score has
+its minimum there.
 (zoo_spheres, measured: the ceiling 0.83 above the box's top, true 0.83; then the poster wall 0.27 beyond the
 cameras, true 0.26.)
 
@@ -105,11 +106,11 @@ def _score(x: np.ndarray, r: np.ndarray, lum: np.ndarray, view: np.ndarray, n: n
 def _refine(x, r, lum, view, n, s: float, offsets: np.ndarray, bounds: list, tol: float, cell: float,
             support: int) -> tuple[float, int]:
     """(offset, support): the coarse sweep's minimum ``s`` (one of ``offsets``, 14 % apart: ~10 cm at a
-    ceiling 0.7 m past the box, the demo's lamp that much off) refined by the vertex of a parabola least-squares
-    fitted to ``REFINE`` scores over its two neighbours on each side. Near the wall the score is flat within its noise
-    (zoo_spheres' ceiling: within 7 % from 0.13 m below the true one to 0.02 above), so the fine sweep's own
-    minimum would pick noise; the parabola takes the basin's middle. The coarse one stays when the fit does not
-    curve up or its vertex leaves the interval."""
+    ceiling 0.7 m past the box; the demo's was placed 0.11 m low) refined by the vertex of a parabola
+    least-squares fitted to ``REFINE`` scores over its two neighbours on each side. Near the wall the score is flat
+    within its noise (zoo_spheres' ceiling: within 7 % from 0.13 m below the true one to 0.02 above), so the fine
+    sweep's own minimum would pick noise; the parabola takes the basin's middle. The coarse one stays when the fit
+    does not curve up or its vertex leaves the interval."""
     i = int(np.argmin(np.abs(offsets - s)))
     lo, hi = float(offsets[max(i - 2, 0)]), float(offsets[min(i + 2, len(offsets) - 1)])
     fine = np.linspace(lo, hi, REFINE)
