@@ -314,12 +314,10 @@ def keep_inside(points: torch.Tensor, room: Room | None) -> int:
     if room is None or not len(points):
         return 0
     moved = torch.zeros(len(points), dtype=torch.bool, device=points.device)
-    for n, d, inl in room.bound:
-        if len(inl):
-            continue  # a plane the buffers show: the highlight fill's rays were open through it
-        m = torch.tensor(n, dtype=points.dtype, device=points.device)
-        depth = points @ m - (d + room.h)
-        out = depth < 0
-        points[out] -= depth[out, None] * m
+    for n, s in placed_walls(room):  # (a plane the buffers show is not one: the highlight rays were open through it)
+        n = torch.tensor(n, dtype=points.dtype, device=points.device)
+        beyond = points @ n - s
+        out = beyond > 0
+        points[out] -= beyond[out, None] * n
         moved |= out
     return int(moved.sum())
