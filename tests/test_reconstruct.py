@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -771,3 +772,38 @@ def test_frozen_highlight_emitters_keep_their_geometry_and_are_not_relit(demo):
     for name in ("means", "quats", "log_scales", "f0", "roughness"):
         assert bool((trainer.params[name].grad[rows] == 0).all()), name
     assert bool((trainer.params["diffuse"].grad[rows] == 1).all())
+
+
+def test_highlight_emitters_grow_at_most_the_growth_limit_also_after_a_checkpoint_and_a_prune(demo):
+    """``highlight_max_growth``: each scale of the highlight fill's emitters stays within that many times the
+    largest they were placed with (trained free, those off the light grew into sheets up to 0.9 m under the demo's
+    ceiling); every other Gaussian grows as before, and the limits follow the rows through a prune and a checkpoint."""
+    capture, init = demo
+    cfg = dict(SMALL, iterations=12, warmup=10, prune_every=0, sphere_fill=False, highlight_max_growth=2.0)
+    trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    for _ in range(11):
+        trainer.train_step()
+    line = next(d for d in trainer.decisions if "emitting Gaussians where" in d)
+    added = int(line.split("added ")[1].split()[0])
+    assert added > 0, line
+    n = len(trainer.prior)
+    capped = torch.isfinite(trainer.scale_cap)
+    assert int(capped.sum()) == added and bool(capped[n - added:].all())
+    placed = trainer.params["log_scales"].detach()[n - added:].amax(dim=1)
+    assert torch.allclose(trainer.scale_cap[n - added:], placed + math.log(2.0), atol=0.2)  # (trained one step)
+    keep = torch.ones(n, dtype=torch.bool)
+    keep[::3] = False  # a prune keeps the limits on their rows
+    trainer._replace(keep=keep)
+    state = trainer.state_dict()
+    trainer.load_state_dict(state)
+    capped = torch.isfinite(trainer.scale_cap)
+    with torch.no_grad():
+        before = trainer.params["log_scales"].clone()
+        trainer.params["log_scales"] += 5.0  # e^5 = 148x: what no emitter may keep
+    trainer._clamp()
+    ls = trainer.params["log_scales"].detach()
+    assert bool((ls[capped] <= trainer.scale_cap[capped, None] + 1e-6).all())
+    assert bool((ls[capped].amax(dim=1) < before[capped].amax(dim=1) + math.log(2.0) + 0.2).all())
+    free = ~capped & ~trainer.fixed  # (the thickness limit clamps only their thinnest axis)
+    grown = torch.isclose(ls[free].amax(dim=1), (before + 5.0)[free].amax(dim=1))
+    assert float(grown.float().mean()) > 0.95

@@ -133,6 +133,9 @@ class Trainer:
         # the far field's Gaussians (far_field_margin keeps them out of the captured room's box)
         self.far = torch.zeros_like(self.reflected)
         self._far_rows: torch.Tensor | None = None
+        # each Gaussian's largest log scale allowed (highlight_max_growth: the highlight fill's emitters; inf: none)
+        self.scale_cap = torch.full((len(self.params["means"]),), math.inf, device=self.device)
+        self._capped_rows: torch.Tensor | None = None
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
         for d in self.decisions:
@@ -321,11 +324,12 @@ class Trainer:
 
     def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None,
                  anchored: bool = False, prior: bool = False, fixed: bool = False, matte: bool = False,
-                 far: bool = False) -> None:
+                 far: bool = False, growth: float = 0.0) -> None:
         """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
         now, see anchors.py, and matte; ``prior``: a prior's, see ``self.prior``; ``fixed``: nothing of theirs
-        trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``; ``far``: the far field's), keeping Adam's state and the
-        anchors aligned."""
+        trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``; ``far``: the far field's; ``growth``
+        > 0: each of their scales stays within that many times their largest scale now, see ``scale_cap``), keeping
+        Adam's state and the anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
@@ -333,6 +337,8 @@ class Trainer:
             self.fixed = self.fixed[keep.to(self.fixed.device)]
             self.far = self.far[keep.to(self.far.device)]
             self._far_rows = None
+            self.scale_cap = self.scale_cap[keep.to(self.scale_cap.device)]
+            self._capped_rows = None
             self.prune_memory = self.prune_memory[keep.to(self.prune_memory.device)]
             self._prior_rows = self._reflected_rows = self._fixed_rows = None
         if extra is not None:
@@ -344,6 +350,10 @@ class Trainer:
                                                            device=self.fixed.device)])
             self.far = torch.cat([self.far, torch.full((len(extra),), far, dtype=torch.bool, device=self.far.device)])
             self._far_rows = None
+            cap = (extra.log_scales.amax(dim=1).to(self.scale_cap) + math.log(growth) if growth > 0
+                   else torch.full((len(extra),), math.inf, device=self.scale_cap.device))
+            self.scale_cap = torch.cat([self.scale_cap, cap])
+            self._capped_rows = None
             self.prune_memory = torch.cat([self.prune_memory, torch.full((len(extra), self.prune_memory.shape[1]),
                                                                          float("nan"), device=self.prune_memory.device)])
             self._prior_rows = self._reflected_rows = self._fixed_rows = None
@@ -417,6 +427,11 @@ class Trainer:
             self._clamp_thickness()
         if self.config.far_field_margin > 0 and self._thickness_box is not None:
             self._keep_far_field_out()
+        if self._capped_rows is None:
+            self._capped_rows = torch.nonzero(torch.isfinite(self.scale_cap)).reshape(-1)
+        if len(self._capped_rows):
+            rows, ls = self._capped_rows, self.params["log_scales"]
+            ls[rows] = torch.minimum(ls[rows], self.scale_cap[rows, None].to(ls))
         self.anchors.project(self.params["means"], self.params["quats"], self.params["log_scales"])
 
     # ----------------------------------------------------------------- steps
@@ -498,12 +513,13 @@ class Trainer:
         return total, metrics, read[len(names):]
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False,
-                  prior: bool = False, fixed: bool = False, matte: bool = False) -> None:
-        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``prior``: a prior's, never pruned
+                  prior: bool = False, fixed: bool = False, matte: bool = False, growth: float = 0.0) -> None:
+        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``growth``: see ``_replace``;
+        ``prior``: a prior's, never pruned
         for want of weight, geometry frozen), log ``message % stats`` and keep it among the decisions (with each
         of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
-            self._replace(extra=fill, anchored=anchored, prior=prior, fixed=fixed, matte=matte)
+            self._replace(extra=fill, anchored=anchored, prior=prior, fixed=fixed, matte=matte, growth=growth)
         depth, spread = self.config.fill_anchor, max(self.config.fill_spread, self.config.fill_anchor)
         if fill is not None and anchored and depth > 0:
             message += (f", anchored (surfels facing the views: along that direction within {depth:g}x their "
@@ -644,7 +660,8 @@ class Trainer:
                                "searched %(box_scale_range)s; %(snapped)d moved onto a wall placed just beyond; "
                                "%(inside)d moved in front of a wall placed; "
                                "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)",
-                               prior=cfg.highlight_frozen, matte=cfg.highlight_frozen)
+                               prior=cfg.highlight_frozen, matte=cfg.highlight_frozen,
+                               growth=cfg.highlight_max_growth)
         relight_at = cfg.warmup + int(cfg.plane_fill_relight_at * (cfg.iterations - cfg.warmup))
         if (reflections and cfg.plane_fill_relight and self._room is not None and not self.plane_fill_relit
                 and self.step >= relight_at):
@@ -879,6 +896,7 @@ class Trainer:
             "reflected": self.reflected.clone(),
             "fixed": self.fixed.clone(),
             "far": self.far.clone(),
+            "scale_cap": self.scale_cap.clone(),
             "prune_order": self._prune_order, "prune_round": self._prune_round,
             "prune_memory": self.prune_memory.clone(),
             "thickness_box": self._thickness_box,
@@ -899,6 +917,8 @@ class Trainer:
         self.reflected = state.get("reflected", torch.zeros_like(self.prior)).to(self.device)
         self.fixed = state.get("fixed", torch.zeros_like(self.prior)).to(self.device)
         self.far = state.get("far", torch.zeros_like(self.prior)).to(self.device)
+        self.scale_cap = state.get("scale_cap", torch.full((len(self.prior),), math.inf)).to(self.device)
+        self._capped_rows = None
         self._prune_order, self._prune_round = state.get("prune_order"), state.get("prune_round", 0)
         self._thickness_box = state.get("thickness_box")
         self.prune_memory = state.get("prune_memory", torch.zeros((len(self.prior), 0))).to(self.device)
