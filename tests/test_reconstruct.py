@@ -776,7 +776,7 @@ def test_frozen_highlight_emitters_keep_their_geometry_and_are_not_relit(demo):
 
 def test_highlight_emitters_grow_at_most_the_growth_limit_also_after_a_checkpoint_and_a_prune(demo):
     """``highlight_max_growth``: each scale of the highlight fill's emitters stays within that many times the
-    largest they were placed with (trained free, those off the light grew into sheets up to 0.9 m under the demo's
+    median size they were placed with (trained free, those off the light grew into sheets up to 0.9 m under the demo's
     ceiling); every other Gaussian grows as before, and the limits follow the rows through a prune and a checkpoint."""
     capture, init = demo
     cfg = dict(SMALL, iterations=12, warmup=10, prune_every=0, sphere_fill=False, highlight_max_growth=2.0)
@@ -790,7 +790,7 @@ def test_highlight_emitters_grow_at_most_the_growth_limit_also_after_a_checkpoin
     capped = torch.isfinite(trainer.scale_cap)
     assert int(capped.sum()) == added and bool(capped[n - added:].all())
     placed = trainer.params["log_scales"].detach()[n - added:].amax(dim=1)
-    assert torch.allclose(trainer.scale_cap[n - added:], placed + math.log(2.0), atol=0.2)  # (trained one step)
+    assert torch.allclose(trainer.scale_cap[n - added:], placed.median() + math.log(2.0), atol=0.2)  # (one step)
     keep = torch.ones(n, dtype=torch.bool)
     keep[::3] = False  # a prune keeps the limits on their rows
     trainer._replace(keep=keep)
@@ -803,7 +803,7 @@ def test_highlight_emitters_grow_at_most_the_growth_limit_also_after_a_checkpoin
     trainer._clamp()
     ls = trainer.params["log_scales"].detach()
     assert bool((ls[capped] <= trainer.scale_cap[capped, None] + 1e-6).all())
-    assert bool((ls[capped].amax(dim=1) < before[capped].amax(dim=1) + math.log(2.0) + 0.2).all())
+    assert float(ls[capped].amax(dim=1).max()) < float(before[capped].amax(dim=1).median()) + math.log(2.0) + 0.2
     free = ~capped & ~trainer.fixed  # (the thickness limit clamps only their thinnest axis)
     grown = torch.isclose(ls[free].amax(dim=1), (before + 5.0)[free].amax(dim=1))
     assert float(grown.float().mean()) > 0.95

@@ -198,9 +198,10 @@ class ReconstructConfig:
                                        "at 2.47). Measured with close_room_refine: demo +0.34 / -0.20 dB at seeds "
                                        "0 / 1, zoo_spheres -0.70 at seed 0 (README, twenty-ninth session)")
     highlight_max_growth: float = setting(0.0, "the highlight fill's emitters keep each scale within this many "
-                                          "times the largest they were given (0: no limit). Trained free, those "
-                                          "off the light dimmed and grew into sheets up to 0.9 m across just "
-                                          "under the ceiling, one over the demo's lamp", minimum=0.0)
+                                          "times the median size the fill gave them (0: no limit). Trained free, "
+                                          "those off the light dimmed and grew into sheets up to 0.9 m across just "
+                                          "under the ceiling, one over the demo's lamp; an isolated one is placed "
+                                          "at up to 0.45 m (its nearest neighbour's distance)", minimum=0.0)
     highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "

@@ -328,7 +328,8 @@ class Trainer:
         """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
         now, see anchors.py, and matte; ``prior``: a prior's, see ``self.prior``; ``fixed``: nothing of theirs
         trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``; ``far``: the far field's; ``growth``
-        > 0: each of their scales stays within that many times their largest scale now, see ``scale_cap``), keeping
+        > 0: each of their scales stays within that many times the median of their largest scales now, see
+        ``scale_cap``), keeping
         Adam's state and the anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
@@ -350,8 +351,8 @@ class Trainer:
                                                            device=self.fixed.device)])
             self.far = torch.cat([self.far, torch.full((len(extra),), far, dtype=torch.bool, device=self.far.device)])
             self._far_rows = None
-            cap = (extra.log_scales.amax(dim=1).to(self.scale_cap) + math.log(growth) if growth > 0
-                   else torch.full((len(extra),), math.inf, device=self.scale_cap.device))
+            size = extra.log_scales.amax(dim=1).median() + math.log(growth) if growth > 0 and len(extra) else math.inf
+            cap = torch.full((len(extra),), float(size), device=self.scale_cap.device)
             self.scale_cap = torch.cat([self.scale_cap, cap])
             self._capped_rows = None
             self.prune_memory = torch.cat([self.prune_memory, torch.full((len(extra), self.prune_memory.shape[1]),
