@@ -179,34 +179,29 @@ class ReconstructConfig:
                                "the cameras, a ceiling above every frame), placed at the end of warm-up where sharp "
                                "reflections, curved mirrors too, agree on them (room_closing.py); a side whose "
                                "reflections agree best far away stays open")
-    close_room_refine: bool = setting(True, "room closing refines each wall's offset by a parabola fitted to a fine "
+    close_room_refine: bool = setting(False, "room closing refines each wall's offset by a parabola fitted to a fine "
                                       "sweep round the coarse one's minimum (whose steps are 14 %: ~10 cm at a "
                                       "ceiling): zoo_spheres' ceiling 0.12 -> 0.05 m low, the demo's 0.11 -> 0.03. "
-                                      "Alone it lost (demo -0.44 / -0.31 dB, zoo_spheres -0.09); with "
-                                      "highlight_to_walls and highlight_max_growth 3 (the defaults since the "
-                                      "thirtieth session): demo +0.25 / +0.64 at seeds 0 / 1, zoo_spheres +0.06 / "
-                                      "+0.15 (README)")
+                                      "Off: trained with it alone, the demo lost 0.44 / 0.31 dB at seeds 0 / 1 and "
+                                      "zoo_spheres 0.09 at seed 1; with highlight_to_walls as well the demo scored "
+                                      "+0.34 / -0.20 and zoo_spheres -0.70 at seed 0 (README, twenty-ninth session)")
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
     highlight_on_fill: bool = setting(False, "highlight fill: a highlight reflection that ends on the plane fill "
                                       "or on a wall placed after warm-up (a light on an unseen part of the room's "
                                       "planes: a ceiling lamp behind the cameras) gets an emitter there, at the "
                                       "plane's front. Off: measured worse at two seeds (zoo_mirror_only -0.5 to "
                                       "-0.9 dB, the other rooms within the spread; README, twenty-third session)")
-    highlight_to_walls: bool = setting(True, "highlight fill: an emitter the box sweep leaves at most two of its "
+    highlight_to_walls: bool = setting(False, "highlight fill: an emitter the box sweep leaves at most two of its "
                                        "steps short of a wall room closing placed moves along its ray onto the "
                                        "wall (the sweep tells a lamp's distance to ~10 cm, the wall better: the "
                                        "demo's ceiling lamp, 2.49 m up, sat at 2.22-2.31 under a ceiling placed "
-                                       "at 2.47). With close_room_refine and highlight_max_growth 3: demo +0.25 / "
-                                       "+0.64 dB at seeds 0 / 1, zoo_spheres +0.06 / +0.15 (README, thirtieth "
-                                       "session)")
-    highlight_max_growth: float = setting(3.0, "the highlight fill's emitters keep each scale within this many "
+                                       "at 2.47). Measured with close_room_refine: demo +0.34 / -0.20 dB at seeds "
+                                       "0 / 1, zoo_spheres -0.70 at seed 0 (README, twenty-ninth session)")
+    highlight_max_growth: float = setting(0.0, "the highlight fill's emitters keep each scale within this many "
                                           "times the median size the fill gave them (0: no limit). Trained free, "
                                           "those off the light dimmed and grew into sheets up to 0.9 m across just "
                                           "under the ceiling, one over the demo's lamp; an isolated one is placed "
-                                          "at up to 0.45 m (its nearest neighbour's distance). With "
-                                          "close_room_refine and highlight_to_walls: demo +0.25 / +0.64 dB at seeds "
-                                          "0 / 1, zoo_spheres +0.06 / +0.15, zoo_mirror_only -0.06, "
-                                          "zoo_mirror_metal 0.00 (README, thirtieth session)", minimum=0.0)
+                                          "at up to 0.45 m (its nearest neighbour's distance)", minimum=0.0)
     highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "
