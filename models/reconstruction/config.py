@@ -200,8 +200,11 @@ class ReconstructConfig:
     highlight_max_growth: float = setting(0.0, "the highlight fill's emitters keep each scale within this many "
                                           "times the median size the fill gave them (0: no limit). Trained free, "
                                           "those off the light dimmed and grew into sheets up to 0.9 m across just "
-                                          "under the ceiling, one over the demo's lamp; an isolated one is placed "
-                                          "at up to 0.45 m (its nearest neighbour's distance)", minimum=0.0)
+                                          "under the ceiling, one over the demo's lamp. Off: at 3, with "
+                                          "close_room_refine and highlight_to_walls, demo +0.25 / +0.64 dB at seeds "
+                                          "0 / 1, zoo_spheres +0.06 / +0.15, but zoo_corridor -0.52 (its 19 "
+                                          "emitters must grow to tile two ceiling strips; README, thirtieth "
+                                          "session)", minimum=0.0)
     highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "
