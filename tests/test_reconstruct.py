@@ -796,7 +796,9 @@ def test_highlight_emitters_grow_at_most_the_growth_limit_also_after_a_checkpoin
     trainer._replace(keep=keep)
     state = trainer.state_dict()
     trainer.load_state_dict(state)
+    was = capped
     capped = torch.isfinite(trainer.scale_cap)
+    assert torch.equal(capped, was[keep])  # the same emitters, on their new rows
     with torch.no_grad():
         before = trainer.params["log_scales"].clone()
         trainer.params["log_scales"] += 5.0  # e^5 = 148x: what no emitter may keep

@@ -329,8 +329,7 @@ class Trainer:
         now, see anchors.py, and matte; ``prior``: a prior's, see ``self.prior``; ``fixed``: nothing of theirs
         trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``; ``far``: the far field's; ``growth``
         > 0: each of their scales stays within that many times the median of their largest scales now, see
-        ``scale_cap``), keeping
-        Adam's state and the anchors aligned."""
+        ``scale_cap``), keeping Adam's state and the anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
@@ -515,9 +514,8 @@ class Trainer:
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False,
                   prior: bool = False, fixed: bool = False, matte: bool = False, growth: float = 0.0) -> None:
-        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``growth``: see ``_replace``;
-        ``prior``: a prior's, never pruned
-        for want of weight, geometry frozen), log ``message % stats`` and keep it among the decisions (with each
+        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``growth``: see ``_replace``; ``prior``:
+        a prior's, never pruned for want of weight, geometry frozen), log ``message % stats`` and keep it among the decisions (with each
         of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
             self._replace(extra=fill, anchored=anchored, prior=prior, fixed=fixed, matte=matte, growth=growth)
