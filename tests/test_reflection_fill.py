@@ -220,6 +220,7 @@ def test_highlight_fill_moves_emitters_onto_a_wall_placed_just_beyond_them():
     swept, _ = highlight_fill_gaussians(rays, reference_trace, scene)
     lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, planes=[(np.array([0.0, 0, 1]), 1.75)])
     assert stats["snapped"] == len(lights) == len(swept) > 200, stats
+    assert bool(stats["snapped_rows"].all()) and len(stats["snapped_rows"]) == len(lights)
     assert (lights.means[:, 2] - 1.75).abs().max() < 0.01 and (lights.means[:, 2] < 1.75).all()
     # each moved along its own ray: back along the move, the mirror point it left, and a camera's ray to that
     # point reflects into the move's direction
@@ -231,6 +232,7 @@ def test_highlight_fill_moves_emitters_onto_a_wall_placed_just_beyond_them():
     assert ((seen - move[:, None]).norm(dim=-1).min(dim=1).values < 1e-3).all()
     far, far_stats = highlight_fill_gaussians(rays, reference_trace, scene, planes=[(np.array([0.0, 0, 1]), 2.0)])
     assert far_stats["snapped"] == 0 and torch.equal(far.means, swept.means)
+    assert not bool(far_stats["snapped_rows"].any()) and len(far_stats["snapped_rows"]) == len(far)
 
 
 def test_snap_to_planes_takes_the_first_wall_ahead_within_the_tolerance():
@@ -239,13 +241,13 @@ def test_snap_to_planes_takes_the_first_wall_ahead_within_the_tolerance():
                                                     [1.0, 0.0, 0.0]]), dim=-1)
     planes = [(np.array([0.0, 0.0, 1.0]), 0.2), (np.array([1.0, 0.0, 0.0]), 0.1)]  # a ceiling, a near side wall
     moved = snap_to_planes(pos, r, planes, torch.full((3,), 0.25), offset=0.0)
-    assert moved == 3  # the third heads away from both walls
+    assert moved.tolist() == [True, True, False, True]  # the third heads away from both walls
     torch.testing.assert_close(pos[0], torch.tensor([0.0, 0.0, 0.2]))  # straight up onto the ceiling
     torch.testing.assert_close(pos[1], torch.tensor([0.1, 0.0, 0.1]))  # the side wall comes first on its ray
     torch.testing.assert_close(pos[2], torch.zeros(3))
     torch.testing.assert_close(pos[3], torch.tensor([0.1, 0.0, 0.0]))
     pos = torch.zeros(1, 3)
-    assert snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.1), offset=0.0) == 0  # 0.2 short: beyond 0.1
+    assert not snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.1), offset=0.0).any()  # 0.2 short: beyond 0.1
 
 
 @pytest.mark.parametrize("lamp_z", [5.0, 8.0])

@@ -226,10 +226,11 @@ SWEEP_STEP = 0.1  # sweep_box_scale's step in box scale
 SNAP_STEPS = 2    # an emitter this many sweep steps short of a placed wall moves onto it
 
 
-def snap_to_planes(pos: torch.Tensor, r: torch.Tensor, planes: list, half: torch.Tensor, offset: float) -> int:
+def snap_to_planes(pos: torch.Tensor, r: torch.Tensor, planes: list, half: torch.Tensor,
+                   offset: float) -> torch.Tensor:
     """Moves the points ``pos`` [M, 3] (in place) along their unit rays ``r`` onto the first of ``planes`` ((n, s):
     n . p = s, n pointing out of the room) that they head to and lie short of by at most ``half`` [3] . |n|
-    (the tolerance along n), ``offset`` in front of it along the ray; returns how many moved."""
+    (the tolerance along n), ``offset`` in front of it along the ray; returns which moved ([M] bool)."""
     moved = torch.zeros(len(pos), dtype=torch.bool, device=pos.device)
     best = torch.full((len(pos),), float("inf"), dtype=pos.dtype, device=pos.device)
     for n, s in planes:
@@ -241,7 +242,7 @@ def snap_to_planes(pos: torch.Tensor, r: torch.Tensor, planes: list, half: torch
         best = torch.where(ok, t, best)
         moved |= ok
     pos[moved] += (best[moved] - offset).clamp_min(0)[:, None] * r[moved]
-    return int(moved.sum())
+    return moved
 
 
 def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
@@ -322,9 +323,11 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     tells the light's distance to ~10-30 cm, biased short (its purity is flat over 2-3 steps: the demo's ceiling
     lamp, 2.49 m up, got emitters at 2.22-2.31, zoo_spheres' at 2.18), the wall, fitted to thousands of sharp
     reflections, better (the demo's refined ceiling: 2.47); a lamp hanging farther below it stays where the sweep
-    put it. ``snapped`` in the statistics counts them (``reconstruct.highlight_to_walls``)."""
+    put it. ``snapped`` in the statistics counts them (``reconstruct.highlight_to_walls``), ``snapped_rows`` [n]
+    (bool, None without emitters) marks them among the returned Gaussians."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
-             "on_fill": 0, "on_fill_added": 0, "snapped": 0, "notes": []}
+             "on_fill": 0, "on_fill_added": 0, "snapped": 0, "snapped_rows": None,
+             "notes": []}
     t = rays.targets
     found = mirror_rays(rays, max_rays=len(rays), seed=seed)
     if found is None or "specular" not in t or "diffuse" not in t:
@@ -375,6 +378,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     keep = keep[torch.randperm(len(keep), generator=gen)[:max_count]]
     stats["highlight_rays"] = len(keep)
     pos = x[:0]
+    snapped = torch.zeros(0, dtype=torch.bool)
     if len(keep):
         scale_box, scales, _, notes = sweep_box_scale(x, r, bright, lo, hi)
         stats["notes"] += notes
@@ -383,14 +387,18 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
         lo, hi = centre - scale_box * half, centre + scale_box * half
         x, r, radiance = x[keep], r[keep], radiance[keep]
         pos = x + (box_exit(x, r, lo, hi) - 2 * step)[:, None] * r
+        snapped = torch.zeros(len(pos), dtype=torch.bool)
         if planes:
-            stats["snapped"] = snap_to_planes(pos, r, planes, SNAP_STEPS * SWEEP_STEP * half, 2 * step)
+            snapped = snap_to_planes(pos, r, planes, SNAP_STEPS * SWEEP_STEP * half, 2 * step).cpu()
+            stats["snapped"] = int(snapped.sum())
     else:
         radiance = radiance[:0]
     pos, radiance = torch.cat([pos, fill_pos]), torch.cat([radiance, fill_radiance])
+    snapped = torch.cat([snapped, torch.zeros(len(fill_pos), dtype=torch.bool)])
     unseen = ~seen_empty(pos, rays.views)
     stats["on_fill_added"] = int(unseen[len(pos) - len(fill_pos):].sum())
     pos, radiance = pos[unseen], radiance[unseen]
+    stats["snapped_rows"] = snapped[unseen.cpu()]  # [n] bool: which emitters a wall took
     n = len(pos)
     stats["added"] = n - stats["on_fill_added"]
     if n == 0:

@@ -324,12 +324,13 @@ class Trainer:
 
     def _replace(self, keep: torch.Tensor | None = None, extra: Gaussians | None = None,
                  anchored: bool = False, prior: bool = False, fixed: bool = False, matte: bool = False,
-                 far: bool = False, growth: float = 0.0) -> None:
+                 far: bool = False, growth: float = 0.0, growth_rows: torch.Tensor | None = None) -> None:
         """Prune (``keep`` [N] bool) and/or append ``extra`` Gaussians (``anchored``: kept near where they are
         now, see anchors.py, and matte; ``prior``: a prior's, see ``self.prior``; ``fixed``: nothing of theirs
         trains; ``matte``: their F0 and roughness stay, see ``_freeze_priors``; ``far``: the far field's; ``growth``
-        > 0: each of their scales stays within that many times the median of their largest scales now, see
-        ``scale_cap``), keeping Adam's state and the anchors aligned."""
+        > 0: each scale of those of them ``growth_rows`` marks ([len(extra)] bool; None: all) stays within that
+        many times the median of all their largest scales now, see ``scale_cap``), keeping Adam's state and the
+        anchors aligned."""
         if keep is not None:
             self.anchors.keep(keep.to(self.anchors.index.device))
             self.prior = self.prior[keep.to(self.prior.device)]
@@ -350,8 +351,10 @@ class Trainer:
                                                            device=self.fixed.device)])
             self.far = torch.cat([self.far, torch.full((len(extra),), far, dtype=torch.bool, device=self.far.device)])
             self._far_rows = None
-            size = extra.log_scales.amax(dim=1).median() + math.log(growth) if growth > 0 and len(extra) else math.inf
+            size = extra.log_scales.detach().amax(dim=1).median() + math.log(growth) if growth > 0 and len(extra) else math.inf
             cap = torch.full((len(extra),), float(size), device=self.scale_cap.device)
+            if growth_rows is not None:
+                cap[~growth_rows.to(cap.device)] = math.inf
             self.scale_cap = torch.cat([self.scale_cap, cap])
             self._capped_rows = None
             self.prune_memory = torch.cat([self.prune_memory, torch.full((len(extra), self.prune_memory.shape[1]),
@@ -513,12 +516,15 @@ class Trainer:
         return total, metrics, read[len(names):]
 
     def _add_fill(self, fill: Gaussians | None, stats: dict, message: str, anchored: bool = False,
-                  prior: bool = False, fixed: bool = False, matte: bool = False, growth: float = 0.0) -> None:
-        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``growth``: see ``_replace``; ``prior``:
+                  prior: bool = False, fixed: bool = False, matte: bool = False, growth: float = 0.0,
+                  growth_rows: torch.Tensor | None = None) -> None:
+        """Append a fill's Gaussians (if any; ``anchored``: see anchors.py; ``growth``, ``growth_rows``: see
+        ``_replace``; ``prior``:
         a prior's, never pruned for want of weight, geometry frozen), log ``message % stats`` and keep it among the decisions (with each
         of ``stats["notes"]``: what a fill could not decide well)."""
         if fill is not None:
-            self._replace(extra=fill, anchored=anchored, prior=prior, fixed=fixed, matte=matte, growth=growth)
+            self._replace(extra=fill, anchored=anchored, prior=prior, fixed=fixed, matte=matte, growth=growth,
+                          growth_rows=growth_rows)
         depth, spread = self.config.fill_anchor, max(self.config.fill_spread, self.config.fill_anchor)
         if fill is not None and anchored and depth > 0:
             message += (f", anchored (surfels facing the views: along that direction within {depth:g}x their "
@@ -660,7 +666,7 @@ class Trainer:
                                "%(inside)d moved in front of a wall placed; "
                                "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)",
                                prior=cfg.highlight_frozen, matte=cfg.highlight_frozen,
-                               growth=cfg.highlight_max_growth)
+                               growth=cfg.highlight_max_growth, growth_rows=stats["snapped_rows"])
         relight_at = cfg.warmup + int(cfg.plane_fill_relight_at * (cfg.iterations - cfg.warmup))
         if (reflections and cfg.plane_fill_relight and self._room is not None and not self.plane_fill_relit
                 and self.step >= relight_at):
