@@ -104,6 +104,8 @@ def _legacy_path(data):
         data = {**data, "fresnel": "schlick"}
     if isinstance(data, dict) and "reflection_origin" not in data:
         data = {**data, "reflection_origin": "expected"}
+    if isinstance(data, dict) and "diffuse_lobe" not in data:
+        data = {**data, "diffuse_lobe": "lambert"}
     return data
 
 

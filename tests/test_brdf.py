@@ -19,6 +19,7 @@ from models.pathtrace.brdf import (
     SMITH_MODELS,
     eval_specular,
     dielectric_weight,
+    diffuse_view_factor,
     fresnel,
     fresnel_dielectric,
     fresnel_f90,
@@ -419,3 +420,56 @@ def test_cuda_matches_cpu(name):
     assert torch.allclose(s_cpu.weight, s_gpu.weight.cpu(), rtol=1e-9, atol=1e-12)
     n, wo, r = batch[0], batch[1], batch[2]
     assert torch.allclose(pdf(n, wo, s_cpu.wi, r), pdf(n.cuda(), wo.cuda(), s_gpu.wi, r.cuda()).cpu(), rtol=1e-9)
+
+
+# ----------------------------------------------------------------- view-dependent diffuse (Disney, principled)
+
+@pytest.mark.parametrize("roughness", [0.0, 0.1, 0.5, 1.0])
+def test_disney_diffuse_factor_matches_mitsuba_principled_under_uniform_light(roughness):
+    """The closed form of ``diffuse_view_factor`` ("disney", F0 >= 0.02) against Mitsuba's own ``principled`` at
+    specular 0 (whose full evaluation is its diffuse lobe: tests/test_synth_lobes.py), base colour 1, integrated
+    over a stratified cosine-weighted hemisphere of light directions: the radiance towards the viewer under
+    uniform unit radiance, at viewing angles from the normal to 88 degrees."""
+    mi = pytest.importorskip("mitsuba")
+    from models.synth.mitsuba_scene import mitsuba
+    mi = mitsuba()
+    import drjit as dr
+
+    bsdf = mi.load_dict({"type": "principled", "base_color": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
+                         "roughness": roughness, "metallic": 0.0, "specular": 0.0})
+    k = 256
+    u1, u2 = np.meshgrid((np.arange(k) + 0.5) / k, (np.arange(k) + 0.5) / k, indexing="ij")
+    u1, u2 = u1.ravel(), u2.ravel()
+    ci, si = np.sqrt(u1), np.sqrt(1 - u1)  # cosine-weighted: cos_i^2 uniform
+    light = np.stack([si * np.cos(2 * np.pi * u2), si * np.sin(2 * np.pi * u2), ci])
+    cosines = np.array([1.0, 0.8, 0.5, 0.3, 0.15, 0.07, 0.035])
+    ours = diffuse_view_factor(torch.tensor(cosines, dtype=torch.float64),
+                               torch.full((len(cosines),), roughness, dtype=torch.float64),
+                               torch.full((len(cosines), 3), 0.04, dtype=torch.float64), "disney")[:, 0].numpy()
+    for c, h in zip(cosines, ours):
+        si_ = dr.zeros(mi.SurfaceInteraction3f, len(u1))
+        si_.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        si_.wi = mi.Vector3f(np.full(len(u1), math.sqrt(1 - c * c), np.float32), np.zeros(len(u1), np.float32),
+                             np.full(len(u1), c, np.float32))
+        value = np.asarray(bsdf.eval(mi.BSDFContext(), si_, mi.Vector3f(*light.astype(np.float32))))[0]
+        truth = float(np.mean(value * np.pi / ci))  # f cos_i / pdf, pdf = cos_i / pi
+        assert abs(h - truth) <= 2e-3 * truth, (roughness, c, h, truth)
+
+
+def test_disney_diffuse_factor_limits():
+    """Lambert: no factor. F0 = 0 (no specular lobe: a Lambertian or a light): exactly 1 at every angle. F0 >= 0.02:
+    darker towards grazing on a smooth surface (0.6 at 90 degrees), brighter on a rough one; between, blended."""
+    c = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    r0, r1 = torch.zeros(11, dtype=torch.float64), torch.ones(11, dtype=torch.float64)
+    f0 = lambda v: torch.full((11, 3), v, dtype=torch.float64)  # noqa: E731
+    assert diffuse_view_factor(c, r0, f0(0.04), "lambert") is None
+    assert torch.equal(diffuse_view_factor(c, r0, f0(0.0), "disney"), torch.ones(11, 1, dtype=torch.float64))
+    smooth = diffuse_view_factor(c, r0, f0(0.04), "disney")[:, 0]
+    assert torch.all(smooth[1:] >= smooth[:-1])  # monotone towards the normal
+    assert smooth[0] == pytest.approx(41 / 84) and smooth[-1] == pytest.approx(41 / 42)
+    rough = diffuse_view_factor(c, r1, f0(0.04), "disney")[:, 0]
+    assert rough[0] > 1.4 and rough[-1] > 1.0
+    half = diffuse_view_factor(c, r0, f0(0.01), "disney")[:, 0]  # w = 0.5
+    assert torch.allclose(half, 1 + 0.5 * (smooth - 1))
+    with pytest.raises(ValueError, match="diffuse_lobe='phong'"):
+        diffuse_view_factor(c, r0, f0(0.04), "phong")

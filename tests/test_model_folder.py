@@ -37,11 +37,15 @@ def p2(tiny_demo, tmp_path_factory):
 
 
 def _diffuse(g, camera, kernel_p: int) -> np.ndarray:
-    """The diffuse layer (primary segment: deterministic) of ``camera`` traced directly at ``kernel_p``."""
+    """The diffuse layer (primary segment: deterministic) of ``camera`` traced directly at ``kernel_p``, shaded as
+    the default path settings' (``diffuse_lobe``) shade it."""
+    from models.pathtrace.paths import PathConfig, shade_diffuse
+
     tracer = Tracer(TracerConfig(kernel_p=kernel_p, num_threads=1))
     tracer.update(g)
     dirs = torch.tensor(camera.ray_directions().reshape(-1, 3), dtype=torch.float32)
     out = tracer.trace(torch.tensor(camera.origin, dtype=torch.float32).expand_as(dirs).contiguous(), dirs, g)
+    out = shade_diffuse(out, dirs, PathConfig())
     tracer.close()
     return out.diffuse.numpy().reshape(camera.height, camera.width, 3)
 
@@ -179,7 +183,8 @@ def test_model_yaml_from_before_the_traversal_option_still_loads(tmp_path):
 def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_path):
     """Models trained before ``path.fresnel`` existed were trained with F90 = 1: they load as "schlick"; a new
     model writes its mode, and the default is "schlick_f90". Likewise ``path.reflection_origin``: older models
-    started reflections at the expected depth and load as "expected"; new ones write theirs (default "front")."""
+    started reflections at the expected depth and load as "expected"; new ones write theirs (default "front"); and
+    ``path.diffuse_lobe``: older models' diffuse was the same from every side ("lambert"; default "disney")."""
     from models.gaussians import random_gaussians
     from models.pathtrace.paths import PathConfig
 
@@ -189,9 +194,10 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
     assert yaml.safe_load((tmp_path / "m" / MODEL_FILE).read_text())["path"]["fresnel"] == "schlick_f90"
     assert read_settings(tmp_path / "m").path.fresnel == "schlick_f90"
     assert read_settings(tmp_path / "m").path.reflection_origin == PathConfig().reflection_origin == "front"
+    assert read_settings(tmp_path / "m").path.diffuse_lobe == PathConfig().diffuse_lobe == "disney"
     for path in ({"max_path_length": 3, "sampler": "vndf"}, None):
         (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, **({"path": path} if path else {})}))
-        assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected")
+        assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected", diffuse_lobe="lambert")
     (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "path": {"fresnel": "fresnell"}}))
     with pytest.raises(ValueError, match="model.yaml path: fresnel must be one of"):
         read_settings(tmp_path / "m")
@@ -199,4 +205,4 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
     with pytest.raises(ValueError, match="model.yaml path: reflection_origin must be one of .*'middle'"):
         read_settings(tmp_path / "m")
     (tmp_path / "m" / MODEL_FILE).unlink()  # no model.yaml at all (older still): the defaults, that Fresnel and origin
-    assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected")
+    assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected", diffuse_lobe="lambert")

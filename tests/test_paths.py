@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from models.gaussians import Gaussians
+from models.pathtrace.brdf import diffuse_view_factor
 from models.pathtrace.paths import PathConfig, trace_paths
 from models.tracer import Tracer, TracerConfig, reference_trace
 
@@ -50,7 +51,9 @@ def test_flat_mirror_gives_mirrored_image(backend):
     g = scene(dtype=dtype)
     o, d = camera_rays(dtype=dtype)
     fn = reference_fn() if backend == "reference" else Tracer(TracerConfig(num_threads=1)).trace
-    out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2), torch.Generator().manual_seed(1))
+    # lambert: what the mirror shows is the object's diffuse as the tracer blends it (test_disney_diffuse_* below)
+    out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2, diffuse_lobe="lambert"),
+                      torch.Generator().manual_seed(1))
     # the mirror image: rays reflected at the plane, traced through the object alone
     t_plane = -o[:, 2] / d[:, 2]
     hit = o + d * t_plane[:, None]
@@ -100,7 +103,8 @@ def test_truncated_mirror_reflects_from_its_surface(backend):
     g.opacity_logits[:2] = logit
     o, d = camera_rays(dtype=dtype)
     fn = reference_fn() if backend == "reference" else Tracer(TracerConfig(num_threads=1)).trace
-    out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2), torch.Generator().manual_seed(1))
+    out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2, diffuse_lobe="lambert"),
+                      torch.Generator().manual_seed(1))
     assert torch.all(out.primary.hit_count > out.primary.blended_count)  # every primary ray truncated
     t_plane = -o[:, 2] / d[:, 2]
     hit = o + d * t_plane[:, None]
@@ -184,8 +188,11 @@ def test_extremes_finite_values_and_gradients(roughness, f0, log_scale):
     loss.backward()
     assert torch.isfinite(out.final).all() and torch.isfinite(out.primary.depth).all()
     # energy: each reflection segment returns at most the brightest diffuse value (throughput <= 1 for F0 <= 1)
+    # times the largest view factor of the (default) Disney diffuse: a rough surface seen at grazing, 1.56
+    top = float(diffuse_view_factor(torch.zeros(1), torch.ones(1), torch.ones(1, 3), PathConfig().diffuse_lobe).max())
+    assert 1.55 < top < 1.56
     for bounce in out.bounces:
-        assert bounce.max() <= g.diffuse.max() + 1e-5
+        assert bounce.max() <= g.diffuse.max() * top + 1e-5
     for name, p in g.params().items():
         assert torch.isfinite(p.grad).all(), name
 
@@ -247,10 +254,52 @@ def test_reflections_start_at_the_surfaces_front_not_inside_its_gaussians(backen
     top = 1.0 / math.cos(math.radians(60))  # the ray meets the top plane at t = 2
     spec = {}
     for origin in ("front", "expected"):
-        out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2, reflection_origin=origin),
+        out = trace_paths(fn, o, d, g, PathConfig(max_path_length=2, reflection_origin=origin, diffuse_lobe="lambert"),
                           torch.Generator().manual_seed(0))
         spec[origin] = out.specular.mean(-1)
         torch.testing.assert_close(out.primary.front_depth, torch.full((4,), top, **t), atol=1e-4, rtol=0)
         assert (out.primary.depth / out.primary.opacity()[:, 0] > top + 0.02).all()  # the expected one: inside
     torch.testing.assert_close(spec["front"], torch.ones(4, **t), atol=1e-3, rtol=0)
     assert (spec["expected"] < 0.5).all(), spec["expected"]
+
+
+@pytest.mark.parametrize("backend", ["reference", "warp"])
+def test_disney_diffuse_shades_the_primary_and_every_bounce(backend):
+    """``diffuse_lobe="disney"``: the diffuse layer and what a reflection reads are the tracer's diffuse times
+    ``diffuse_view_factor`` of the blended normal / roughness / F0 seen along that segment's rays; on a scene
+    whose every F0 is 0 (no specular lobe) nothing changes; "lambert" is the paper's."""
+    dtype = torch.float64 if backend == "reference" else torch.float32
+    g = scene(dtype=dtype)
+    o, d = camera_rays(dtype=dtype)
+    fn = reference_fn() if backend == "reference" else Tracer(TracerConfig(num_threads=1)).trace
+
+    def run(lobe, gs=g):
+        return trace_paths(fn, o, d, gs, PathConfig(max_path_length=2, diffuse_lobe=lobe),
+                           torch.Generator().manual_seed(1))
+
+    lam, dis = run("lambert"), run("disney")
+    raw = fn(o, d, g)
+    assert torch.equal(lam.primary.diffuse, raw.diffuse)
+    # primary: the mirror plane (normal z, F0 1, roughness 0) seen along d
+    factor = diffuse_view_factor(d[:, 2].abs(), torch.zeros(len(d), dtype=dtype), torch.ones(len(d), 3, dtype=dtype),
+                                 "disney")
+    assert torch.allclose(dis.primary.diffuse, raw.diffuse * factor, rtol=1e-5, atol=1e-7)
+    assert (factor < 0.97).any() and (factor < 0.98).all()
+    # the bounce: the object (normal x, F0 0.04, roughness 0.8) seen along the mirrored rays
+    t_plane = -o[:, 2] / d[:, 2]
+    hit, d_ref = o + d * t_plane[:, None], d * torch.tensor([1.0, 1.0, -1.0], dtype=dtype)
+    obj = Gaussians(**{k: v[1:] for k, v in g.params().items()})
+    seen = reference_trace(hit, d_ref, obj)
+    opacity = seen.opacity()
+    f = diffuse_view_factor(d_ref[:, 0].abs(), seen.roughness.reshape(-1) / opacity.reshape(-1),
+                            (seen.f0 / opacity).clamp(0, 1), "disney")
+    lit = seen.diffuse.amax(-1) > 1e-2
+    ratio = dis.specular[lit] / lam.specular[lit]
+    assert torch.allclose(ratio, f[lit].to(dtype).expand_as(ratio), rtol=2e-3)
+    assert (f[lit] - 1).abs().max() > 1e-3  # the object's factor differs from 1 somewhere seen
+    # every F0 = 0: the same paths exactly (the mirror reflects nothing then, so compare the primary too)
+    matte = Gaussians(**{**g.params(), "f0": torch.zeros_like(g.f0)})
+    a, b = run("lambert", matte), run("disney", matte)
+    assert torch.equal(a.primary.diffuse, b.primary.diffuse) and torch.equal(a.specular, b.specular)
+    with pytest.raises(ValueError, match="diffuse_lobe"):
+        PathConfig(diffuse_lobe="phong")

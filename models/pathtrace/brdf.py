@@ -202,6 +202,42 @@ def dielectric_weight(f0: torch.Tensor, mode: str = DEFAULT_FRESNEL) -> torch.Te
     return ((hi - f0.mean(-1, keepdim=True)) / (hi - lo)).clamp(0.0, 1.0)
 
 
+DIFFUSE_LOBES = ("lambert", "disney")
+
+
+def diffuse_view_factor(cos_o: torch.Tensor, roughness: torch.Tensor, f0: torch.Tensor,
+                        lobe: str = "lambert") -> torch.Tensor | None:
+    """[..., 1] how the diffuse radiance a surface sends towards the viewer depends on the viewing angle, or None
+    (``lobe`` "lambert": it does not, the paper's). cos_o: [...] (n . wo); roughness: [...]; f0: [..., 3].
+
+    "disney": the Disney diffuse of Mitsuba's ``principled`` (the capture's diffuse layer for those materials,
+    models/synth/lobes.py), f = (1 - F_i / 2)(1 - F_o / 2) + R_r (F_o + F_i + F_o F_i (R_r - 1)), R_r = 2 r
+    cos_d^2, F_x = (1 - cos_x)^5, averaged over a cosine-weighted hemisphere of incident light (uniform
+    radiance), in closed form: with c = cos_o, cos_d^2 = (1 + wi . wo) / 2 and the moments E[F_i] = 1/21,
+    E[F_i c_i] = 1/84, E[F_i c_i^2] = 1/252,
+
+        h = 41/42 (1 - F_o / 2) + r [F_o (1 + 2c/3) + (1 - F_o)(1/21 + c/84)]
+            + r^2 F_o [1/21 + c/42 + c^2/252 + (1 - c^2) 11/504].
+
+    A smooth surface sends 0.6-0.75x as much towards grazing views as towards its normal (r 0 -> 0.1 at
+    cos_o 0.05-0.1), a rough one up to 1.46x (r 1). The factor is 1 + w (h - 1) with w = min(1, 50 mean F0), the
+    ``schlick_f90`` weight: a surface with no specular lobe (F0 = 0: Mitsuba's Lambertian ``diffuse``, lights)
+    stays Lambertian. ``tests/test_brdf.py::test_disney_diffuse_factor_*`` integrates the synth lobe against it."""
+    if lobe == "lambert":
+        return None
+    if lobe != "disney":
+        raise ValueError(f"diffuse_lobe={lobe!r}: expected one of {DIFFUSE_LOBES}")
+    c = cos_o.clamp(0.0, 1.0)
+    m = 1.0 - c
+    fo = (m * m) * (m * m) * m
+    r = roughness.clamp(0.0, 1.0)
+    h = ((41.0 / 42.0) * (1.0 - 0.5 * fo)
+         + r * (fo * (1.0 + 2.0 * c / 3.0) + (1.0 - fo) * (1.0 / 21.0 + c / 84.0))
+         + r * r * fo * (1.0 / 21.0 + c / 42.0 + c * c / 252.0 + (1.0 - c * c) * (11.0 / 504.0)))
+    w = (F90_SCALE * f0.mean(-1)).clamp(0.0, 1.0)
+    return (1.0 + w * (h - 1.0))[..., None]
+
+
 def fresnel_dielectric(f0: torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
     """Unpolarised Fresnel reflectance of a smooth dielectric seen from outside, eta = (1 + sqrt F0) / (1 - sqrt
     F0) per channel (F0 clamped below 0.99): F = 1/2 ((g - c) / (g + c))^2 (1 + ((c (g + c) - 1) / (c (g - c) +

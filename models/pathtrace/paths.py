@@ -17,13 +17,15 @@ vertex)^3, which leaves the forward value unchanged.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
 
 from models.gaussians import Gaussians
-from models.pathtrace.brdf import DEFAULT_FRESNEL, FRESNEL_MODES, dielectric_weight, fresnel, fresnel_f90, reflect
+from models.pathtrace.brdf import (DEFAULT_FRESNEL, DIFFUSE_LOBES, FRESNEL_MODES, dielectric_weight, diffuse_view_factor,
+                                   fresnel, fresnel_f90, reflect)
 from models.pathtrace.sampling import sample_specular
 from models.tracer.output import TraceOutput
 
@@ -52,6 +54,9 @@ class PathConfig:
     reflection_origin: str = "front"  # where a reflection starts along the ray that met the surface: front (the
     # surface's front half, TraceOutput.front_depth) | expected (the expected depth, the paper's; models trained
     # before the option read it: models/trained.py)
+    diffuse_lobe: str = "disney"  # disney (a Gaussian's diffuse radiance follows the viewing angle as Mitsuba's
+    # principled diffuse under uniform light, on surfaces with a specular lobe: brdf.diffuse_view_factor; at every
+    # segment) | lambert (the same from every side, the paper's; models trained before the option read it)
 
     def __post_init__(self) -> None:
         if self.max_path_length < 1:
@@ -64,6 +69,8 @@ class PathConfig:
             raise ValueError(f"sampler must be 'vndf' or 'ndf', got {self.sampler!r}")
         if self.reflection_origin not in REFLECTION_ORIGINS:
             raise ValueError(f"reflection_origin must be one of {REFLECTION_ORIGINS}, got {self.reflection_origin!r}")
+        if self.diffuse_lobe not in DIFFUSE_LOBES:
+            raise ValueError(f"diffuse_lobe must be one of {DIFFUSE_LOBES}, got {self.diffuse_lobe!r}")
 
 
 def vertex_depth(seg: TraceOutput, origin: str = "front") -> torch.Tensor:
@@ -78,6 +85,25 @@ def vertex_depth(seg: TraceOutput, origin: str = "front") -> torch.Tensor:
         front = seg.front_depth.detach().reshape(-1, 1).to(depth.dtype)
         depth = torch.where(front > 0, front, depth)
     return depth
+
+
+def shade_diffuse(seg: TraceOutput, dirs: torch.Tensor, config: PathConfig) -> TraceOutput:
+    """``seg`` with its diffuse layer as seen along ``dirs`` ([R, 3] unit): times ``diffuse_view_factor`` of the
+    segment's blended normal, roughness and F0 (detached: a shading constant, as the bounce's BRDF) under
+    ``config.diffuse_lobe``; ``seg`` itself for "lambert". Where the blended normals cancel (shorter than
+    ``normal_min_norm`` x opacity, as a vertex that does not reflect) the factor is 1."""
+    if config.diffuse_lobe == "lambert":
+        return seg
+    opacity = seg.opacity()
+    n_acc = seg.normal.detach()
+    n_len = n_acc.norm(dim=-1)
+    ok = (n_len >= config.normal_min_norm * opacity.reshape(-1)) & (n_len > 1e-6)
+    cos_o = ((n_acc / n_len.clamp_min(1e-12)[:, None]) * dirs.to(n_acc.dtype)).sum(-1).abs()
+    rough = seg.roughness.detach().reshape(-1) / opacity.reshape(-1)
+    f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)
+    factor = diffuse_view_factor(cos_o, rough, f0, config.diffuse_lobe)
+    factor = torch.where(ok[:, None], factor, torch.ones_like(factor)).to(seg.diffuse.dtype)
+    return dataclasses.replace(seg, diffuse=seg.diffuse * factor)
 
 
 @dataclass
@@ -117,9 +143,11 @@ def trace_paths(
     generator: torch.Generator | None = None,
     primary: TraceOutput | None = None,
 ) -> PathOutput:
-    """One path sample per ray. ``primary`` may be passed to reuse a first segment (N spp rendering)."""
+    """One path sample per ray. ``primary`` may be passed to reuse a first segment (N spp rendering): the tracer's
+    output as it is (``PathOutput.primary`` holds it shaded, ``shade_diffuse``)."""
     if primary is None:
         primary = trace_fn(origins, dirs, gaussians)
+    primary = shade_diffuse(primary, dirs, config)
     rays = origins.shape[0]
     specular = torch.zeros((rays, 3), dtype=origins.dtype, device=origins.device)
     out = PathOutput(primary=primary, specular=specular)
@@ -182,7 +210,7 @@ def trace_paths(
         d = wi[live]
         o = x[live] + config.origin_offset * d
         grad_scale = (1.0 - rough[live]).clamp_min(0.0) ** config.grad_roughness_power
-        seg = trace_fn(o, d, gaussians)
+        seg = shade_diffuse(trace_fn(o, d, gaussians), d, config)
         contrib = throughput * _scale_grad(seg.diffuse, grad_scale[:, None])
         bounce = torch.zeros_like(specular).index_put((index,), contrib)
         out.bounces.append(bounce)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from models.pathtrace.brdf import FRESNEL_MODES
+from models.pathtrace.brdf import DIFFUSE_LOBES, FRESNEL_MODES
 from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig
 from models.settings import from_dict, setting
 from models.tracer.config import TracerConfig
@@ -86,6 +86,12 @@ class ReconstructConfig:
                                      "an angle no training camera saw it from, it lies inside a curved surface's "
                                      "Gaussians, which then shadow its reflections: zoo_spheres, README); stored "
                                      "with the model", enum=list(REFLECTION_ORIGINS))
+    diffuse_lobe: str = setting(_PATH.diffuse_lobe, "how a Gaussian's diffuse radiance depends on the viewing "
+                                "angle: disney (as Mitsuba's principled diffuse under uniform light, on surfaces "
+                                "with a specular lobe, F0 > 0: 0.6-0.75x towards grazing views on a smooth one, up "
+                                "to 1.46x on a rough one, as the capture's diffuse layer of such materials) | "
+                                "lambert (it does not, the paper's); stored with the model",
+                                enum=list(DIFFUSE_LOBES))
     loss: LossWeights = setting(default_factory=LossWeights, doc="loss weights")
     lr: LearningRates = setting(default_factory=LearningRates, doc="learning rates")
     tracer: TracerConfig = setting(default_factory=TracerConfig, doc="ray tracer settings (kernel_p, "
@@ -258,7 +264,8 @@ class ReconstructConfig:
         diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
         so a scene scaled by any factor trains the same. Training adds ``min_throughput`` (``training_path``)."""
         return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler, fresnel=self.fresnel,
-                          origin_offset=self.origin_offset * scene_size, reflection_origin=self.reflection_origin)
+                          origin_offset=self.origin_offset * scene_size, reflection_origin=self.reflection_origin,
+                          diffuse_lobe=self.diffuse_lobe)
 
     def training_path(self, scene_size: float) -> PathConfig:
         """``path`` with the training-only path cut-off (``min_throughput``)."""

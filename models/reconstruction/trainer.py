@@ -449,7 +449,8 @@ class Trainer:
         g = self.gaussians()
         self.backend.update(g)
         path_cfg = (self.path_config(training=True) if reflections
-                    else PathConfig(max_path_length=1, sampler=self.config.sampler))
+                    else PathConfig(max_path_length=1, sampler=self.config.sampler,
+                                    diffuse_lobe=self.config.diffuse_lobe))
         if self.defer_checks:
             rng = self.generator.get_state()
             with self.backend.deferred_checks() as checks:
@@ -815,11 +816,12 @@ class Trainer:
             g = Gaussians(**{k: p.detach().clone().requires_grad_(k == "diffuse") for k, p in self.params.items()})
             self.backend.update(g)
             rays = self.batches.view(v)
+            primary = self.backend.trace(rays.origins, rays.dirs, g)  # blending weights: not shaded (diffuse_lobe)
+            seen = primary.diffuse[:, 0].sum()
             if reflections:
-                out = trace_paths(self.backend.trace, rays.origins, rays.dirs, g, path_cfg, self.generator)
-                seen = out.primary.diffuse[:, 0].sum() + out.specular[:, 0].sum()
-            else:
-                seen = self.backend.trace(rays.origins, rays.dirs, g).diffuse[:, 0].sum()
+                out = trace_paths(self.backend.trace, rays.origins, rays.dirs, g, path_cfg, self.generator,
+                                  primary=primary)
+                seen = seen + out.specular[:, 0].sum()
             (grad,) = torch.autograd.grad(seen, g.diffuse, allow_unused=True)
             if grad is not None:
                 acc += grad[:, 0]

@@ -17,8 +17,8 @@ from tqdm import tqdm
 
 from models.capture import Camera
 from models.gaussians import Gaussians
-from models.pathtrace.brdf import FRESNEL_MODES
-from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig, trace_paths
+from models.pathtrace.brdf import DIFFUSE_LOBES, FRESNEL_MODES
+from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig, shade_diffuse, trace_paths
 from models.settings import from_dict, setting
 
 from .denoise import denoise
@@ -39,6 +39,8 @@ class RenderConfig:
     reflection_origin: str | None = setting(None, "front | expected (where a reflection starts: "
                                             "reconstruct.reflection_origin); null = the model's (model.yaml)",
                                             enum=[*REFLECTION_ORIGINS, None])
+    diffuse_lobe: str | None = setting(None, "lambert | disney (reconstruct.diffuse_lobe); null = the model's "
+                                       "(model.yaml)", enum=[*DIFFUSE_LOBES, None])
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
@@ -52,7 +54,8 @@ class RenderConfig:
 
     def path(self, model: PathConfig) -> PathConfig:
         """The model's path settings with this render's overrides."""
-        over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel", "reflection_origin")
+        over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel", "reflection_origin",
+                                               "diffuse_lobe")
                 if getattr(self, k) is not None}
         return dataclasses.replace(model, **over)
 
@@ -82,7 +85,7 @@ def render_view(trace_fn, camera: Camera, gaussians: Gaussians, config: RenderCo
         n = max(config.spp, 1)
         opacity = primary.opacity()
         chunk = {
-            "diffuse": primary.diffuse,
+            "diffuse": shade_diffuse(primary, d, path_cfg).diffuse,
             "specular_noisy": spec / n,
             "depth": primary.depth.reshape(-1, 1),
             "normal": torch.nn.functional.normalize(primary.normal, dim=-1),
