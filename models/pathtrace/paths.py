@@ -87,23 +87,49 @@ def vertex_depth(seg: TraceOutput, origin: str = "front") -> torch.Tensor:
     return depth
 
 
-def shade_diffuse(seg: TraceOutput, dirs: torch.Tensor, config: PathConfig) -> TraceOutput:
-    """``seg`` with its diffuse layer as seen along ``dirs`` ([R, 3] unit): times ``diffuse_view_factor`` of the
-    segment's blended normal, roughness and F0 (detached: a shading constant, as the bounce's BRDF) under
-    ``config.diffuse_lobe``; ``seg`` itself for "lambert". Where the blended normals cancel (shorter than
-    ``normal_min_norm`` x opacity, as a vertex that does not reflect) the factor is 1."""
-    if config.diffuse_lobe == "lambert":
-        return seg
+@dataclass
+class Vertex:
+    """A segment's blended values conditional on the ray terminating there: sums / accumulated opacity (1 - T),
+    except truncated rays, which the tracer's tail rule already normalised (detached: shading constants)."""
+
+    opacity: torch.Tensor  # [R, 1]
+    normal: torch.Tensor  # [R, 3] unit blended normal (any direction where the normals cancel)
+    length: torch.Tensor  # [R] length of the blended normal
+    reflects: torch.Tensor  # [R] bool: the normals agree (length >= normal_min_norm x opacity)
+    roughness: torch.Tensor  # [R] blended roughness / opacity, not clamped
+    f0: torch.Tensor  # [R, 3] blended F0 / opacity, in [0, 1]
+
+
+def vertex(seg: TraceOutput, config: PathConfig) -> Vertex:
+    """``seg``'s vertex values (``Vertex``): a half-transparent vertex whose Gaussians agree on their normal
+    reflects, one whose normals cancel out does not."""
     opacity = seg.opacity()
     n_acc = seg.normal.detach()
     n_len = n_acc.norm(dim=-1)
-    ok = (n_len >= config.normal_min_norm * opacity.reshape(-1)) & (n_len > 1e-6)
-    cos_o = ((n_acc / n_len.clamp_min(1e-12)[:, None]) * dirs.to(n_acc.dtype)).sum(-1).abs()
-    rough = seg.roughness.detach().reshape(-1) / opacity.reshape(-1)
-    f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)
-    factor = diffuse_view_factor(cos_o, rough, f0, config.diffuse_lobe)
+    return Vertex(opacity=opacity, normal=n_acc / n_len.clamp_min(1e-12)[:, None], length=n_len,
+                  reflects=n_len >= config.normal_min_norm * opacity.reshape(-1),
+                  roughness=seg.roughness.detach().reshape(-1) / opacity.reshape(-1),
+                  f0=(seg.f0.detach() / opacity).clamp(0.0, 1.0))
+
+
+def _shade(seg: TraceOutput, dirs: torch.Tensor, config: PathConfig) -> tuple[TraceOutput, Vertex | None]:
+    """``shade_diffuse`` and the vertex it computed (None for "lambert", which needs none)."""
+    if config.diffuse_lobe == "lambert":
+        return seg, None
+    v = vertex(seg, config)
+    ok = v.reflects & (v.length > 1e-6)
+    cos_o = (v.normal * dirs.to(v.normal.dtype)).sum(-1).abs()
+    factor = diffuse_view_factor(cos_o, v.roughness, v.f0, config.diffuse_lobe)
     factor = torch.where(ok[:, None], factor, torch.ones_like(factor)).to(seg.diffuse.dtype)
-    return dataclasses.replace(seg, diffuse=seg.diffuse * factor)
+    return dataclasses.replace(seg, diffuse=seg.diffuse * factor), v
+
+
+def shade_diffuse(seg: TraceOutput, dirs: torch.Tensor, config: PathConfig) -> TraceOutput:
+    """``seg`` with its diffuse layer as seen along ``dirs`` ([R, 3] unit): times ``diffuse_view_factor`` of the
+    segment's blended normal, roughness and F0 (``vertex``; detached: a shading constant, as the bounce's BRDF)
+    under ``config.diffuse_lobe``; ``seg`` itself for "lambert". Where the blended normals cancel (shorter than
+    ``normal_min_norm`` x opacity, as a vertex that does not reflect) the factor is 1."""
+    return _shade(seg, dirs, config)[0]
 
 
 @dataclass
@@ -147,7 +173,7 @@ def trace_paths(
     output as it is (``PathOutput.primary`` holds it shaded, ``shade_diffuse``)."""
     if primary is None:
         primary = trace_fn(origins, dirs, gaussians)
-    primary = shade_diffuse(primary, dirs, config)
+    primary, v = _shade(primary, dirs, config)
     rays = origins.shape[0]
     specular = torch.zeros((rays, 3), dtype=origins.dtype, device=origins.device)
     out = PathOutput(primary=primary, specular=specular)
@@ -159,20 +185,13 @@ def trace_paths(
     o, d = origins, dirs
     throughput = torch.ones((rays, 3), dtype=origins.dtype, device=origins.device)
     for _ in range(config.max_path_length - 1):
-        # vertex values conditional on the ray terminating: blended sums / accumulated opacity (1 - T), except
-        # truncated rays, which the tracer's tail rule already normalised; the normal too: a half-transparent
-        # vertex whose Gaussians agree on their normal reflects, one whose normals cancel out does not
-        opacity = seg.opacity()
-        n_acc = seg.normal.detach()
-        n_len = n_acc.norm(dim=-1)
-        keep = n_len >= config.normal_min_norm * opacity.reshape(-1)
-        n = n_acc / n_len.clamp_min(1e-12)[:, None]
+        if v is None:  # (shading computed it, unless the lobe is "lambert")
+            v = vertex(seg, config)
+        keep, f0 = v.reflects, v.f0
         wo = -d
         # a vertex seen from behind reflects as seen from the front (accumulated normals can point away)
-        n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)
-        rough_raw = seg.roughness.detach().reshape(-1, 1) / opacity
-        rough = rough_raw.reshape(-1).clamp(config.min_roughness, 1.0)
-        f0 = (seg.f0.detach() / opacity).clamp(0.0, 1.0)
+        n = torch.where(((v.normal * wo).sum(-1) < 0)[:, None], -v.normal, v.normal)
+        rough = v.roughness.clamp(config.min_roughness, 1.0)
         x = o + d * vertex_depth(seg, config.reflection_origin)
         # drawn where the generator lives (a CPU generator gives the same paths on every device)
         u = torch.rand((len(index), 2), generator=generator, dtype=o.dtype,
@@ -183,7 +202,7 @@ def trace_paths(
         wi, _, weight, valid = sample_specular(n, wo, rough, f0, u[:, 0], u[:, 1], method=config.sampler, f90=f90,
                                                dielectric=dielectric)
         # (no branch on "any mirror": selecting costs less than a device read-back)
-        mirror = rough_raw.reshape(-1) <= config.min_roughness
+        mirror = v.roughness <= config.min_roughness
         cos_o = (n * wo).sum(-1).clamp(0.0, 1.0)
         wi = torch.where(mirror[:, None], reflect(d, n), wi)
         weight = torch.where(mirror[:, None], fresnel(f0, cos_o, f90, dielectric), weight)
@@ -210,7 +229,7 @@ def trace_paths(
         d = wi[live]
         o = x[live] + config.origin_offset * d
         grad_scale = (1.0 - rough[live]).clamp_min(0.0) ** config.grad_roughness_power
-        seg = shade_diffuse(trace_fn(o, d, gaussians), d, config)
+        seg, v = _shade(trace_fn(o, d, gaussians), d, config)
         contrib = throughput * _scale_grad(seg.diffuse, grad_scale[:, None])
         bounce = torch.zeros_like(specular).index_put((index,), contrib)
         out.bounces.append(bounce)

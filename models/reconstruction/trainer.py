@@ -449,8 +449,7 @@ class Trainer:
         g = self.gaussians()
         self.backend.update(g)
         path_cfg = (self.path_config(training=True) if reflections
-                    else PathConfig(max_path_length=1, sampler=self.config.sampler,
-                                    diffuse_lobe=self.config.diffuse_lobe))
+                    else dataclasses.replace(self.config.path(self.scene_size), max_path_length=1))
         if self.defer_checks:
             rng = self.generator.get_state()
             with self.backend.deferred_checks() as checks:
