@@ -109,6 +109,27 @@ def test_a_side_whose_reflections_agree_at_infinity_stays_open(spheres):
     assert any("far edge" in note for note in info["notes"]), info
 
 
+def test_a_side_a_sweep_cannot_decide_says_why(spheres, monkeypatch):
+    """#23 item 3: a sweep that places nothing says so in the decisions (``stats["notes"]``), once per side and
+    pass, with what it found; a side it closes has no such note."""
+    import models.reconstruction.room_closing as closing
+
+    tracer, seen = Tracer(TracerConfig(num_threads=2)), _seen_surfaces(spheres)
+    _, stats = plane_fill_gaussians(spheres)
+    walls, _, info = close_room(stats["room"], spheres, tracer.trace, seen, count=8000)
+    assert walls is not None and "+y at" in info["walls"] and "+z at" in info["walls"], info
+    assert not any(side in note for note in info["notes"] for side in ("side +y", "side +z")), info
+    monkeypatch.setattr(closing, "MAX_RATIO", 0.0)  # no minimum is clear enough now
+    _, stats = plane_fill_gaussians(spheres)
+    walls, _, info = close_room(stats["room"], spheres, tracer.trace, seen, count=8000)
+    assert walls is None and info["walls"] == "none", info
+    for side in ("+y", "+z"):
+        notes = [note for note in info["notes"] if f"side {side}" in note]
+        # one for the sharp pass, one for the glossy pass that then sweeps the sides still open
+        assert len(notes) == 2 and "no clear minimum" in notes[0] and "not placed" in notes[0], info
+        assert "glossy reflections" in notes[1], info
+
+
 def test_lights_placed_beyond_a_wall_move_in_front_of_it(spheres):
     """``keep_inside``: the highlight fill's lights above a ceiling the closing placed would be hidden by it;
     they move onto the room's side, one grid spacing in front; points inside stay where they are."""

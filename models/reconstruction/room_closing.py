@@ -35,7 +35,9 @@ the denoiser: 0.34 m low; denoised, 0.08).
 A wall is placed only when the minimum is inside the sweep, holds ``MIN_SUPPORT`` (cell, view) pairs, and is at
 most ``MAX_RATIO`` of the score at the far end of the sweep (the far field is the alternative: a window or an
 opening, whose reflections agree best at infinity, stays open; a minimum on the sweep's far edge is logged, not
-placed). Sides are closed one at a time, the clearest first; each wall found bounds the next sweeps (a front
+placed, and so is every side a pass leaves open, with why: too few reflections land on it, or no minimum clear
+enough -- zoo_corridor's wall behind the cameras, seen only in two small chrome spheres far down the corridor:
+their reflections hold enough view-cells only 0.2 m past the box, the wall is 0.9 m past it). Sides are closed one at a time, the clearest first; each wall found bounds the next sweeps (a front
 wall ends at the ceiling found before it). A wall is one Gaussian per grid point of the plane inside the other
 bounds (the plane fill's spacing, coarser to fit the budget), not where a training view sees empty space, matte
 (the roughness of the room's other matte Gaussians, ``matte_material``, and F0 0: a guessed F0, never trained,
@@ -174,6 +176,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
     x, r, lum, view = refl["x"], refl["r"], refl["lum"], refl["view"]
     size = float((room.hi - room.lo).max())
     cell = size / CELLS
+    undecided = {}  # side -> why this pass did not close it (its last sweep's), logged at the end
     while sides and len(walls) < max_walls:
         best = None
         bounds = [(n, dd) for n, dd, _ in room.bound]
@@ -186,24 +189,37 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
             value = np.array([sc for sc, _ in scores])
             support = np.array([sp for _, sp in scores])
             valid = np.isfinite(value) & (support >= MIN_SUPPORT)
-            if valid.sum() < 5:
-                continue
-            i = int(np.nanargmin(np.where(valid, value, np.nan)))
-            far = float(np.nanmedian(value[np.nonzero(valid)[0][-5:]]))
-            ratio = value[i] / max(far, 1e-12)
             axis = int(np.argmax(np.abs(n)))
             where = ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
-            if i >= np.nonzero(valid)[0][-1] - 1:
-                stats["notes"].append(f"room closing: the open side {where} agrees best at the far edge of its "
-                                      f"sweep ({SWEEP[-1]:g}x the room's size){label}: left open (the far field)")
+            if valid.sum() < 5:
+                undecided[where] = (f"room closing: the open side {where}{label}: too few reflections land on it to "
+                                    f"sweep it ({int(valid.sum())} of {len(offsets)} offsets hold {MIN_SUPPORT} "
+                                    f"view-cells, {int(going.sum())} reflections head that way): not placed")
+                continue
+            i = int(np.nanargmin(np.where(valid, value, np.nan)))
+            last = int(np.nonzero(valid)[0][-1])
+            far = float(np.nanmedian(value[np.nonzero(valid)[0][-5:]]))
+            ratio = value[i] / max(far, 1e-12)
+            if i >= last - 1:
+                undecided[where] = (f"room closing: the open side {where} agrees best at the far edge of its "
+                                    f"sweep ({SWEEP[-1]:g}x the room's size){label}: left open (the far field)")
                 continue
             if ratio > MAX_RATIO:
+                # the far end the minimum is weighed against is the farthest offsets that still hold enough
+                # view-cells: where that support ends early, the sweep could not see its far end
+                reach = (f"; the reflections hold {MIN_SUPPORT} view-cells only up to {offsets[last] - face:.2f} "
+                         f"beyond the box, of the sweep's {offsets[-1] - face:.2f}" if last < len(offsets) - 5 else "")
+                undecided[where] = (f"room closing: the open side {where}{label}: no clear minimum (the best, "
+                                    f"{offsets[i] - face:.2f} beyond the box, scores {ratio:.2f} of the far end's; "
+                                    f"a wall needs at most {MAX_RATIO:g}{reach}): not placed")
                 continue
+            undecided.pop(where, None)
             if best is None or ratio < best[0]:
                 best = (ratio, n, float(offsets[i]), face, where, int(support[i]))
         if best is None:
             break
         ratio, n, s, face, where, support = best
+        undecided.pop(where, None)
         sides[:] = [m for m in sides if m is not n]
         going = r @ n > 0.05
         if refine:
@@ -222,6 +238,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
         corners = box_corners(grown.min(0), grown.max(0))
         described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
                          f"the far end's{label})")
+    stats["notes"] += [undecided[k] for k in sorted(undecided)]
     return corners
 
 
