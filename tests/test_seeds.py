@@ -2,6 +2,7 @@
 per seed trained, rendered and scored as the workflow would, the pair table's differences, clear CLI errors."""
 
 import math
+import re
 
 import pytest
 
@@ -10,6 +11,7 @@ from stages.benchmark.__main__ import main as benchmark_main
 from stages.benchmark.seeds import format_table, pairs, parse_setting, run_seeds
 from stages.benchmark.sweep import config_for_sweep
 from stages.config import load_config
+from tests.conftest import snakemake
 
 
 def test_parse_setting_nests_keys_and_reads_yaml_values():
@@ -58,6 +60,11 @@ def test_seeds_cli_says_what_is_missing(tmp_path, capsys):
                            "--results", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "no capture for scene 'demo'" in err and str(tmp_path / "demo" / "capture") in err
+    # the command it gives is one the workflow runs (it named capture/transforms.json once: no rule makes that)
+    command = re.search(r"`snakemake --cores 2 (\S+) --config (\S+)`", err)
+    assert command, err
+    proc = snakemake(tmp_path / "wd", "-n", "--cores", "1", command.group(1), "--config", command.group(2))
+    assert proc.returncode == 0 and "rule synth" in proc.stdout + proc.stderr, proc.stdout + proc.stderr
     (tmp_path / "bad.json").write_text("[1, 2]")
     assert benchmark_main(["seeds", "--scenes", "demo", "--set", "reconstruct.fill_anchor=3",
                            "--reuse", str(tmp_path / "bad.json"), "--results", str(tmp_path)]) == 1

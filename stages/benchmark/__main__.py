@@ -203,7 +203,8 @@ def seeds_main(argv) -> int:
             capture = a.results / name / "capture"
             if not (capture / "transforms.json").is_file():
                 raise ValueError(f"no capture for scene {name!r}: {capture}/transforms.json missing (make it with "
-                                 f"`snakemake --cores 2 {capture}/transforms.json --config results={a.results}`)")
+                                 f"`snakemake --cores 2 {capture} --config results={a.results}`: the folder is "
+                                 f"what the synth rule makes)")
             scenes[name] = (capture, config)
     except (ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
