@@ -427,6 +427,10 @@ def test_stage_cli_apply_truth_evaluate(tiny, capsys):
     for key in ("edited_vs_truth", "unedited_vs_truth"):
         assert all(np.isfinite(metrics[key][f"psnr_{layer}"]) for layer in ("final", "diffuse", "specular"))
     assert 0.01 < metrics["changed_region"]["changed_fraction"] < 0.5
+    # on the changed pixels: tonemapped (the headline, mu-law at the view's peak) and linear, edited and not
+    changed = metrics["changed_region"]
+    assert all(np.isfinite(changed[f"{kind}_psnr_{layer}{suffix}"]) for kind in ("edited", "unedited")
+               for layer in ("final", "diffuse", "specular") for suffix in ("", "_tonemapped")), changed
     # the moved ball shows where the ground truth has it: on the pixels where the edited truth is nearer than
     # the unedited capture (the ball's new silhouette), the edited render's depth matches the truth's
     from models.capture.exr import read_exr_channels

@@ -11,7 +11,7 @@ from scipy.ndimage import uniform_filter
 from models.capture import Capture, read_view_buffers
 from models.capture.layers import SCORED
 
-from .hdr import peak
+from .hdr import mu_law, peak
 from .image import psnr
 from .scoring import evaluate_renders, ground_truth
 
@@ -29,8 +29,11 @@ def _final(buffers: dict) -> np.ndarray:
 def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, baseline_renders: Path) -> dict:
     """PSNR per layer on the pixels the edit changed (box-filtered ground-truth final moved > CHANGED_THRESHOLD):
     the edited render vs the edited ground truth, and, as the do-nothing reference, the unedited render vs
-    the same edited ground truth; linear, no clamp, at the peak of the edited ground truth's whole view (as
-    ``psnr_<layer>`` of ``evaluate_renders``)."""
+    the same edited ground truth. ``<edited|unedited>_psnr_<layer>_tonemapped`` (the headline, as the scene's
+    ``psnr_<layer>_tonemapped``): mu-law at the peak of the edited ground truth's final image; beside it
+    ``<edited|unedited>_psnr_<layer>``: linear, no clamp, at the peak of that layer of the edited ground truth's
+    whole view. The linear score weighs a window's or a lamp's error (radiance up to 10-100x a lit wall's) over
+    everything else the edit changed."""
     before = {v.name: v for v in capture.split("test")}
     out: dict[str, list] = {}
     for view in truth.split("test"):
@@ -44,12 +47,15 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
         out.setdefault("changed_fraction", []).append(float(mask.mean()))
         if not mask.any():
             continue
+        top = peak(gt["final"])
         for key, folder in (("edited", renders), ("unedited", baseline_renders)):
             pred = read_view_buffers(folder / f"{view.name}.exr", h, w)
             pred = {"diffuse": pred["diffuse"], "specular": pred["specular"], "final": pred["rgb"]}
             for layer in SCORED:
                 out.setdefault(f"{key}_psnr_{layer}", []).append(
                     psnr(pred[layer], gt[layer], mask, peak=peak(gt[layer])))
+                out.setdefault(f"{key}_psnr_{layer}_tonemapped", []).append(
+                    psnr(mu_law(pred[layer], top), mu_law(gt[layer], top), mask))
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
