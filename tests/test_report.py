@@ -164,3 +164,36 @@ def test_batch_report_sets_a_photos_run_beside_its_exact_room(tmp_path):
     assert cells[5] == "19/20" and cells[6] == "0.125 deg, 0.310%"
     assert cells[7:] == ["14.50", "–", "31.0", "0.250"]
     assert "Photos runs (room_photos) are NOT g.t. inputs" in html
+
+
+def test_batch_report_lists_every_edit_with_its_gain_tonemapped_and_linear(tmp_path):
+    """Each scene's edits (edits/<name>/metrics.json): the changed pixels' PSNR unedited and ours (tonemapped), the
+    gain, the linear gain beside it, and the count of edits gaining >= 3 dB under each; an edit scored before the
+    tonemapped keys existed shows a dash, not a number."""
+    edits = {"room": {"move": {"changed_fraction": 0.05, "unedited_psnr_final_tonemapped": 20.0,
+                               "edited_psnr_final_tonemapped": 24.5, "unedited_psnr_final": 30.0,
+                               "edited_psnr_final": 31.0},
+                      "paint": {"changed_fraction": 0.1, "unedited_psnr_final_tonemapped": 18.0,
+                                "edited_psnr_final_tonemapped": 19.0, "unedited_psnr_final": 20.0,
+                                "edited_psnr_final": 26.0}},
+             "old": {"shift": {"changed_fraction": 0.2, "unedited_psnr_final": 10.0, "edited_psnr_final": 12.0}}}
+    folders = []
+    for scene, named in edits.items():
+        (tmp_path / scene).mkdir()
+        (tmp_path / scene / "metrics.json").write_text(json.dumps({"mean": {"psnr_final_tonemapped": 25.0}}))
+        for name, changed in named.items():
+            (tmp_path / scene / "edits" / name).mkdir(parents=True)
+            (tmp_path / scene / "edits" / name / "metrics.json").write_text(json.dumps({"changed_region": changed}))
+        folders.append(str(tmp_path / scene))
+    out = tmp_path / "batch.html"
+    proc = subprocess.run([sys.executable, "-m", "stages.report", "batch", *folders, "--out", str(out)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    html = out.read_text().split("<h2>Edits")[1]
+    cells = {m.group(1): re.findall(r"<td[^>]*>(.*?)</td>", m.group(0))
+             for m in re.finditer(r"<tr><td class=\"l\">\w+</td><td class=\"l\">(\w+)</td>.*?</tr>", html)}
+    assert cells["move"] == ["room", "move", "5.0", "20.00", "24.50", "+4.50", "+1.00"]
+    assert cells["paint"] == ["room", "paint", "10.0", "18.00", "19.00", "+1.00", "+6.00"]
+    assert cells["shift"] == ["old", "shift", "20.0", "–", "–", "–", "+2.00"]
+    assert "1 of 3 edits gain at least 3 dB tonemapped (1 linear)" in html
+    assert '<td class="good">+4.50</td>' in html

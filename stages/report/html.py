@@ -9,7 +9,7 @@ body { font-family: system-ui, sans-serif; margin: 1.5em auto; max-width: 1300px
 h1 { margin-bottom: 0.2em; } h2 { border-bottom: 1px solid #ccc; padding-bottom: 0.2em; margin-top: 1.6em; }
 table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
-th { background: #f2f2f2; } td.l, th.l { text-align: left; }
+th { background: #f2f2f2; } td.l, th.l { text-align: left; } td.good { font-weight: bold; }
 figure { display: inline-block; margin: 0.2em; text-align: center; font-size: 0.8em; }
 figure img { image-rendering: pixelated; width: 256px; display: block; }
 img.plot { max-width: 100%; }
