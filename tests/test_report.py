@@ -197,3 +197,9 @@ def test_batch_report_lists_every_edit_with_its_gain_tonemapped_and_linear(tmp_p
     assert cells["shift"] == ["old", "shift", "20.0", "–", "–", "–", "+2.00"]
     assert "1 of 3 edits gain at least 3 dB tonemapped (1 linear)" in html
     assert '<td class="good">+4.50</td>' in html
+    # an edit's metrics.json cut short (a run stopped while writing it): an error naming that file
+    broken = tmp_path / "room" / "edits" / "move" / "metrics.json"
+    broken.write_text('{"changed_region": {"changed_fr')
+    proc = subprocess.run([sys.executable, "-m", "stages.report", "batch", *folders, "--out", str(out)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 1 and f"error: {broken}: not JSON" in proc.stderr, proc.stderr

@@ -59,6 +59,16 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
+def changed_region_gains(changed: dict) -> tuple[float | None, float | None]:
+    """(tonemapped, linear) gain in dB of the edited render over the unedited one on the changed pixels (the
+    ``changed_region`` of ``evaluate_edit``); None where the scores are missing (no pixel changed, or an edit
+    scored before the tonemapped ones existed)."""
+    def gain(suffix: str) -> float | None:
+        a, b = changed.get(f"edited_psnr_final{suffix}"), changed.get(f"unedited_psnr_final{suffix}")
+        return None if a is None or b is None else a - b
+    return gain("_tonemapped"), gain("")
+
+
 def evaluate_edit(capture: Capture, truth: Capture, renders: Path, baseline_renders: Path) -> dict:
     """Edit metrics: the edited render vs the edited ground truth (every layer, as stages/evaluate), the
     unedited render vs the unedited ground truth (the scene's own metrics), and both on the changed pixels."""

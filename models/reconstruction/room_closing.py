@@ -37,8 +37,9 @@ most ``MAX_RATIO`` of the score at the far end of the sweep (the far field is th
 opening, whose reflections agree best at infinity, stays open; a minimum on the sweep's far edge is logged, not
 placed, and so is every side a pass leaves open, with why: too few reflections land on it, or no minimum clear
 enough -- zoo_corridor's wall behind the cameras, seen only in two small chrome spheres far down the corridor:
-their reflections hold enough view-cells only 0.2 m past the box, the wall is 0.9 m past it). Sides are closed one at a time, the clearest first; each wall found bounds the next sweeps (a front
-wall ends at the ceiling found before it). A wall is one Gaussian per grid point of the plane inside the other
+their reflections hold enough view-cells only 0.2 m past the box, the wall is 0.9 m past it). Sides are closed
+one at a time, the clearest first; each wall found bounds the next sweeps (a front wall ends at the ceiling found
+before it). A wall is one Gaussian per grid point of the plane inside the other
 bounds (the plane fill's spacing, coarser to fit the budget), not where a training view sees empty space, matte
 (the roughness of the room's other matte Gaussians, ``matte_material``, and F0 0: a guessed F0, never trained,
 lit zoo_thin's closed ceiling with reflections of its window), its colour the median radiance of the 16
@@ -218,8 +219,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
                 best = (ratio, n, float(offsets[i]), face, where, int(support[i]))
         if best is None:
             break
-        ratio, n, s, face, where, support = best
-        undecided.pop(where, None)
+        ratio, n, s, face, where, support = best  # (a candidate: its side's note was dropped above)
         sides[:] = [m for m in sides if m is not n]
         going = r @ n > 0.05
         if refine:

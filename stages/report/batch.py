@@ -3,11 +3,12 @@ and Table 2 (training times), plus the cost columns of its supplemental (Gaussia
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
-from .html import esc, fmt, hms, page
+from models.metrics.edits import changed_region_gains
+
+from .html import esc, fmt, hms, page, read_json
 
 # The paper's own numbers (Table 1, "Ours (g.t. inputs)", and Table 2) on ITS scenes, for orientation only:
 # different scenes, resolutions and a GPU schedule, so not comparable cell by cell.
@@ -114,11 +115,8 @@ def _edits_table(scene_dirs: list[Path]) -> str:
     rows, counted, tonemapped_ok, linear_ok = [], 0, 0, 0
     for d in scene_dirs:
         for f in sorted((d / "edits").glob("*/metrics.json")) if (d / "edits").is_dir() else []:
-            ch = json.loads(f.read_text()).get("changed_region", {})
-            gain = (ch["edited_psnr_final_tonemapped"] - ch["unedited_psnr_final_tonemapped"]
-                    if "edited_psnr_final_tonemapped" in ch else None)
-            linear = (ch["edited_psnr_final"] - ch["unedited_psnr_final"]
-                      if "edited_psnr_final" in ch and "unedited_psnr_final" in ch else None)
+            ch = read_json(f).get("changed_region", {})
+            gain, linear = changed_region_gains(ch)
             counted += 1
             tonemapped_ok += gain is not None and gain >= EDIT_GAIN_DB
             linear_ok += linear is not None and linear >= EDIT_GAIN_DB
@@ -147,7 +145,7 @@ def batch_report(scene_dirs: list[Path], out: Path, title: str = "batch report",
     ``command``: the command that ran the workflow; ``presets``: scene name -> the presets it ran with."""
     presets = presets or {}
     scene_dirs = [Path(d) for d in scene_dirs]
-    metrics = {d.name: json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").is_file() else {}
+    metrics = {d.name: read_json(d / "metrics.json", missing={})
                for d in scene_dirs}
     names = list(metrics)
     def row(key: str) -> list:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import html
+import json
+from pathlib import Path
 
 CSS = """
 body { font-family: system-ui, sans-serif; margin: 1.5em auto; max-width: 1300px; color: #222; }
@@ -38,6 +40,17 @@ def esc(x) -> str:
 def page(title: str, body: str) -> str:
     return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{esc(title)}</title>"
             f"<style>{CSS}</style></head>\n<body>\n{body}\n{LOAD_CHECK}</body></html>\n")
+
+
+def read_json(path: Path, missing=None):
+    """``path``'s JSON, ``missing`` when there is no such file; a file that is not JSON raises a ValueError naming
+    it (a run stopped while writing it)."""
+    if not path.is_file():
+        return missing
+    try:
+        return json.loads(path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{path}: not JSON ({e}); run the step that writes it again") from None
 
 
 def fmt(value, digits: int = 2) -> str:

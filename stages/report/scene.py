@@ -11,17 +11,17 @@ import numpy as np
 from models.capture import read_capture, read_view_buffers
 from models.capture.layers import GBUFFER as GBUFFER_LAYERS
 from models.capture.layers import SCORED as COLOUR_LAYERS
-from models.metrics import ground_truth
+from models.metrics import changed_region_gains, ground_truth
 
 from .figures import error_map, layer_uri, png_uri, training_curves
-from .html import esc, figure, fmt, hms, page, table
+from .html import esc, figure, fmt, hms, page, read_json, table
 
 # error-map scale per layer (mean absolute error shown as full-bright)
 ERROR_SCALE = {"final": 0.25, "diffuse": 0.25, "specular": 0.25, "normal": 0.5, "roughness": 0.25, "f0": 0.25}
 
 
 def _json(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.is_file() else {}
+    return read_json(path, missing={})
 
 
 def _jsonl(path: Path) -> list[dict]:
@@ -169,8 +169,7 @@ def edits_section(scene_dir: Path) -> str:
         m = _json(d / "metrics.json")
         ed, un, ch = m.get("edited_vs_truth", {}), m.get("unedited_vs_truth", {}), m.get("changed_region", {})
         caught = ", ".join(str(op.get("selected")) for op in m.get("ops", []))
-        gain = (ch["edited_psnr_final_tonemapped"] - ch["unedited_psnr_final_tonemapped"]
-                if "edited_psnr_final_tonemapped" in ch else None)  # (edits scored before it had none)
+        gain, _ = changed_region_gains(ch)
         rows.append([d.name, caught, ed.get("psnr_final_tonemapped"), ed.get("psnr_diffuse_tonemapped"),
                      ed.get("psnr_specular_tonemapped"), un.get("psnr_final_tonemapped"),
                      fmt(100 * ch["changed_fraction"], 1) if "changed_fraction" in ch else "–",
