@@ -92,7 +92,6 @@ class Vertex:
     """A segment's blended values conditional on the ray terminating there: sums / accumulated opacity (1 - T),
     except truncated rays, which the tracer's tail rule already normalised (detached: shading constants)."""
 
-    opacity: torch.Tensor  # [R, 1]
     normal: torch.Tensor  # [R, 3] unit blended normal (any direction where the normals cancel)
     length: torch.Tensor  # [R] length of the blended normal
     reflects: torch.Tensor  # [R] bool: the normals agree (length >= normal_min_norm x opacity)
@@ -106,7 +105,7 @@ def vertex(seg: TraceOutput, config: PathConfig) -> Vertex:
     opacity = seg.opacity()
     n_acc = seg.normal.detach()
     n_len = n_acc.norm(dim=-1)
-    return Vertex(opacity=opacity, normal=n_acc / n_len.clamp_min(1e-12)[:, None], length=n_len,
+    return Vertex(normal=n_acc / n_len.clamp_min(1e-12)[:, None], length=n_len,
                   reflects=n_len >= config.normal_min_norm * opacity.reshape(-1),
                   roughness=seg.roughness.detach().reshape(-1) / opacity.reshape(-1),
                   f0=(seg.f0.detach() / opacity).clamp(0.0, 1.0))
