@@ -1,5 +1,6 @@
 """Bounce loop: analytic flat mirror, path stopping, gradient routing and scaling."""
 
+import dataclasses
 import math
 
 import pytest
@@ -303,3 +304,44 @@ def test_disney_diffuse_shades_the_primary_and_every_bounce(backend):
     assert torch.equal(a.primary.diffuse, b.primary.diffuse) and torch.equal(a.specular, b.specular)
     with pytest.raises(ValueError, match="diffuse_lobe"):
         PathConfig(diffuse_lobe="phong")
+
+
+@pytest.mark.parametrize("backend", ["reference", "warp"])
+def test_hole_fill_gives_what_a_ray_blended_at_full_opacity(backend):
+    """``hole_fill``: a half-transparent mirror (opacity 0.5) seen over nothing: the primary diffuse and what
+    its reflection reads are each the tracer's blend divided by that segment's accumulated opacity, so the
+    mirror's own diffuse comes out as the opaque mirror's, and so does the object its rays meet half-covered
+    (a bounce segment is filled too); off (the default) they keep the black behind them. A ray that blended
+    next to nothing is divided by HOLE_FILL_MIN_OPACITY at most, and one that blended nothing stays 0."""
+    from models.pathtrace.paths import HOLE_FILL_MIN_OPACITY, fill_hole
+
+    dtype = torch.float64 if backend == "reference" else torch.float32
+    fn = reference_fn() if backend == "reference" else Tracer(TracerConfig(num_threads=1)).trace
+    o, d = camera_rays(dtype=dtype)
+    half = scene(dtype=dtype)
+    half.opacity_logits[:] = 0.0  # mirror and object at opacity 0.5
+    full = scene(dtype=dtype)
+    full.opacity_logits[:] = 20.0
+
+    def run(g, fill):
+        return trace_paths(fn, o, d, g, PathConfig(max_path_length=2, hole_fill=fill, diffuse_lobe="lambert"),
+                           torch.Generator().manual_seed(1))
+
+    filled, plain, opaque = run(half, True), run(half, False), run(full, True)
+    raw = fn(o, d, half)
+    assert torch.equal(plain.primary.diffuse, raw.diffuse)  # off: the paper's background 0
+    opacity = 1 - raw.transmittance.reshape(-1, 1)
+    assert (opacity - 0.5).abs().max() < 0.02
+    assert torch.allclose(filled.primary.diffuse, raw.diffuse / opacity, rtol=1e-5)
+    assert torch.allclose(filled.primary.diffuse, opaque.primary.diffuse, atol=2e-3)
+    # the reflection reads the half-transparent object filled: the opaque object's radiance, brighter than off
+    lit = opaque.specular.amax(-1) > 0.3
+    assert lit.any() and (plain.specular[lit] < 0.7 * filled.specular[lit]).all()
+    # a faint ray: at most 1 / HOLE_FILL_MIN_OPACITY brighter; nothing blended stays 0
+    seg = fn(o, d, half)
+    faint = dataclasses.replace(seg, transmittance=torch.full_like(seg.transmittance, 0.99),
+                                hit_count=seg.blended_count)
+    assert torch.allclose(fill_hole(faint, PathConfig(hole_fill=True)).diffuse, seg.diffuse / HOLE_FILL_MIN_OPACITY)
+    empty = dataclasses.replace(seg, diffuse=torch.zeros_like(seg.diffuse), transmittance=torch.ones_like(
+        seg.transmittance), hit_count=torch.zeros_like(seg.hit_count), blended_count=torch.zeros_like(seg.hit_count))
+    assert torch.count_nonzero(fill_hole(empty, PathConfig(hole_fill=True)).diffuse) == 0

@@ -819,3 +819,37 @@ def test_highlight_emitters_on_a_wall_grow_at_most_the_growth_limit_also_after_a
     free = ~capped & ~trainer.fixed  # (the thickness limit clamps only their thinnest axis)
     grown = torch.isclose(ls[free].amax(dim=1), (before + 5.0)[free].amax(dim=1))
     assert float(grown.float().mean()) > 0.95
+
+
+def test_hole_fill_is_decided_on_the_trained_model_logged_and_stored(monkeypatch):
+    """``hole_fill: auto``: a trained model whose training views are opaque (a closed room: no training pixel
+    keeps a transmittance above 0.5) renders with the hole fill, stored in its path settings (model.yaml) and
+    said in the decisions log; one whose training views look past the scene (a wall missing) renders without
+    it. Training itself never fills. ``on`` / ``off`` decide without tracing; an unknown mode is an error."""
+    import models.reconstruction.trainer as trainer_module
+    from models.gaussians import room_gaussians
+
+    capture, init = _room()
+    trainer = Trainer(capture, init, _room_config(), tracer())
+    closed = room_gaussians(2000, torch.Generator().manual_seed(3), opacity_logit_mean=6.0)
+
+    def decide(g):
+        trainer.params = {k: v.clone().requires_grad_(True) for k, v in g.params().items()}
+        trainer.hole_fill = None
+        return trainer.settings().path.hole_fill
+
+    assert decide(closed) is True
+    assert "hole fill on in the renders: 0.00% of the training pixels" in trainer.decisions[-1]
+    assert trainer.path_config(training=True).hole_fill is False and trainer.path_config().hole_fill is False
+    look = -torch.tensor(capture.split("train")[0].camera.c2w[:3, 2], dtype=torch.float32)  # the first view's axis
+    axis = int(look.abs().argmax())
+    gone = closed.means[:, axis] * look[axis].sign() > 0.9  # the wall it faces
+    assert decide(Gaussians(**{k: v[~gone] for k, v in closed.params().items()})) is False
+    assert "hole fill off (the training views look past the scene)" in trainer.decisions[-1]
+    monkeypatch.setattr(trainer_module, "open_share", lambda *a, **k: 1 / 0)  # on / off never trace
+    for mode, want in (("on", True), ("off", False)):
+        forced = Trainer(capture, init, _room_config(hole_fill=mode), tracer())
+        assert forced.settings().path.hole_fill is want
+        assert f"hole fill {mode} (reconstruct.hole_fill)" in forced.decisions
+    with pytest.raises(ValueError, match="hole_fill"):
+        ReconstructConfig.from_dict({"hole_fill": "maybe"})

@@ -35,6 +35,10 @@ TraceFn = Callable[[torch.Tensor, torch.Tensor, Gaussians], TraceOutput]
 
 REFLECTION_ORIGINS = ("front", "expected")
 
+# hole_fill: a ray that blended less opacity than this is divided by it instead (at most 10x brighter): it passed
+# beside the scene, or through a faint floater, rather than through a half-covered surface
+HOLE_FILL_MIN_OPACITY = 0.1
+
 
 @dataclass
 class PathConfig:
@@ -57,6 +61,12 @@ class PathConfig:
     diffuse_lobe: str = "disney"  # disney (a Gaussian's diffuse radiance follows the viewing angle as Mitsuba's
     # principled diffuse under uniform light, on surfaces with a specular lobe: brdf.diffuse_view_factor; at every
     # segment) | lambert (the same from every side, the paper's; models trained before the option read it)
+    hole_fill: bool = False  # the diffuse a segment blends is divided by its accumulated opacity (1 - T_end, at
+    # least HOLE_FILL_MIN_OPACITY): the transmittance left at a ray's end takes the colour the ray blended, as
+    # if no ray could leave the scene. A closed room seen from where no training camera stood shows surfaces
+    # covered by too few Gaussians (mirror-only ones: 12-22 % of a test view's pixels keep T_end > 0.05), and
+    # without it the black behind them (the paper's background 0). Off in training; stages.reconstruct turns it on
+    # in the model it writes where the training views are opaque (ReconstructConfig.hole_fill)
 
     def __post_init__(self) -> None:
         if self.max_path_length < 1:
@@ -111,8 +121,18 @@ def vertex(seg: TraceOutput, config: PathConfig) -> Vertex:
                   f0=(seg.f0.detach() / opacity).clamp(0.0, 1.0))
 
 
+def fill_hole(seg: TraceOutput, config: PathConfig) -> TraceOutput:
+    """``seg`` with its diffuse divided by its accumulated opacity where ``config.hole_fill`` (``PathConfig``);
+    ``seg`` itself otherwise. Truncated rays are already normalised (the tail rule, ``TraceOutput.opacity``)."""
+    if not config.hole_fill:
+        return seg
+    opacity = seg.opacity().clamp_min(HOLE_FILL_MIN_OPACITY).to(seg.diffuse.dtype)
+    return dataclasses.replace(seg, diffuse=seg.diffuse / opacity)
+
+
 def _shade(seg: TraceOutput, dirs: torch.Tensor, config: PathConfig) -> tuple[TraceOutput, Vertex | None]:
     """``shade_diffuse`` and the vertex it computed (None for "lambert", which needs none)."""
+    seg = fill_hole(seg, config)
     if config.diffuse_lobe == "lambert":
         return seg, None
     v = vertex(seg, config)
@@ -127,7 +147,7 @@ def shade_diffuse(seg: TraceOutput, dirs: torch.Tensor, config: PathConfig) -> T
     """``seg`` with its diffuse layer as seen along ``dirs`` ([R, 3] unit): times ``diffuse_view_factor`` of the
     segment's blended normal, roughness and F0 (``vertex``; detached: a shading constant, as the bounce's BRDF)
     under ``config.diffuse_lobe``; ``seg`` itself for "lambert". Where the blended normals cancel (shorter than
-    ``normal_min_norm`` x opacity, as a vertex that does not reflect) the factor is 1."""
+    ``normal_min_norm`` x opacity, as a vertex that does not reflect) the factor is 1. ``fill_hole`` first."""
     return _shade(seg, dirs, config)[0]
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 
 from models.pathtrace.brdf import DIFFUSE_LOBES, FRESNEL_MODES
 from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig
+from models.reconstruction.hole_fill import HOLE_FILL_MODES
 from models.settings import from_dict, setting
 from models.tracer.config import TracerConfig
 
@@ -92,6 +93,14 @@ class ReconstructConfig:
                                 "to 1.46x on a rough one, as the capture's diffuse layer of such materials) | "
                                 "lambert (it does not, the paper's); stored with the model",
                                 enum=list(DIFFUSE_LOBES))
+    hole_fill: str = setting("auto", "whether the model this run writes renders with the hole fill (a ray's "
+                             "blended diffuse divided by its opacity: what is left of its transmittance takes the "
+                             "colour it blended, models/pathtrace/paths.py): auto (on where the trained model's "
+                             "training views are opaque, at most 1 % of their pixels keeping a transmittance above "
+                             "0.5: a closed scene; off where they look past it, an object on a black background) | "
+                             "on | off (background 0, the paper's). Training is the same either way; the decision "
+                             "is in the decisions log and in model.yaml (path.hole_fill)",
+                             enum=list(HOLE_FILL_MODES))
     loss: LossWeights = setting(default_factory=LossWeights, doc="loss weights")
     lr: LearningRates = setting(default_factory=LearningRates, doc="learning rates")
     tracer: TracerConfig = setting(default_factory=TracerConfig, doc="ray tracer settings (kernel_p, "

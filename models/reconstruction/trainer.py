@@ -38,6 +38,8 @@ from .batches import RayBatcher
 from .config import ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import clearance_factors, far_field_gaussians
+from .hole_fill import decide as decide_hole_fill
+from .hole_fill import open_share, strided
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane_fill_gaussians,
@@ -99,6 +101,7 @@ class Trainer:
         self.plane_fill_relit = False  # _relight_plane_fill has run (once, when reflections turn on)
         # segments per path: the config's until reflections turn on, then what _decide_path_length chose
         self.path_length: int | None = None
+        self.hole_fill: bool | None = None  # the renders' hole fill: decided on the trained model (settings())
         self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles the step
         # parameters, rays and targets live where the backend traces (a CUDA tracer: on the GPU)
         self.device = getattr(backend, "torch_device", None) or torch.device("cpu")
@@ -858,9 +861,28 @@ class Trainer:
             self._replace(keep=keep)
         return removed
 
+    @torch.no_grad()
+    def _decide_hole_fill(self) -> bool:
+        """Whether the model renders with ``PathConfig.hole_fill`` (``ReconstructConfig.hole_fill``; auto: where the
+        trained model's training views are opaque, models/reconstruction/hole_fill.py). Decided once, logged."""
+        if self.hole_fill is None:
+            share = None
+            if self.config.hole_fill == "auto":
+                valid = self.rays.mask.nonzero().reshape(-1)
+                rows = self.batches.sample(valid[strided(len(valid))])
+                g = self.gaussians()
+                self.backend.update(g)
+                share = open_share(self.backend.trace, rows.origins, rows.dirs, g)
+            self.hole_fill, why = decide_hole_fill(self.config.hole_fill, share)
+            log.info("%s", why)
+            self.decisions.append(why)
+        return self.hole_fill
+
     def settings(self) -> ModelSettings:
-        """How the trained model renders (stored as its model.yaml): this run's tracer and path settings."""
-        return ModelSettings(tracer=self.config.tracer, path=self.path_config(), units=self.units,
+        """How the trained model renders (stored as its model.yaml): this run's tracer and path settings, the hole
+        fill decided on the trained model (``_decide_hole_fill``)."""
+        path = dataclasses.replace(self.path_config(), hole_fill=self._decide_hole_fill())
+        return ModelSettings(tracer=self.config.tracer, path=path, units=self.units,
                              training={"config_hash": config_hash(to_dict(self.config, runtime=False)), "steps": self.step,
                                        "gaussians": len(self.params["means"])})
 
@@ -1089,7 +1111,8 @@ def scene_size(gaussians: Gaussians) -> float:
 
 
 PATH_DECISION_RAYS = 8192  # training rays traced to decide the path length (_decide_path_length)
-RESUME_IGNORED = ("log_every", "checkpoint_every")  # how a run reports, not what it computes
+# how a run reports, and what only its model.yaml says (the hole fill: decided after training), not what it trains
+RESUME_IGNORED = ("log_every", "checkpoint_every", "hole_fill")
 
 
 def _flat_differences(a: dict, b: dict, prefix: str = "") -> list[tuple[str, object, object]]:

@@ -41,6 +41,9 @@ class RenderConfig:
                                             enum=[*REFLECTION_ORIGINS, None])
     diffuse_lobe: str | None = setting(None, "lambert | disney (reconstruct.diffuse_lobe); null = the model's "
                                        "(model.yaml)", enum=[*DIFFUSE_LOBES, None])
+    hole_fill: bool | None = setting(None, "true | false: a ray's blended diffuse divided by its opacity (the "
+                                     "transmittance left at its end takes the colour it blended: "
+                                     "reconstruct.hole_fill); null = the model's (model.yaml)")
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
@@ -55,7 +58,7 @@ class RenderConfig:
     def path(self, model: PathConfig) -> PathConfig:
         """The model's path settings with this render's overrides."""
         over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel", "reflection_origin",
-                                               "diffuse_lobe")
+                                               "diffuse_lobe", "hole_fill")
                 if getattr(self, k) is not None}
         return dataclasses.replace(model, **over)
 
