@@ -47,6 +47,7 @@ def runs(tiny_demo, tmp_path_factory):
         cap, g = _scaled(capture, init, s)
         trainer = Trainer(cap, g, config, Tracer(config.tracer))
         metrics = train(trainer, tmp_path_factory.mktemp(f"scale{s:g}"), progress=False)
+        trainer.settings()  # as stages.reconstruct: the model's settings, the hole fill decided (logged) here
         out[s] = trainer, metrics
     return out
 
