@@ -12,7 +12,7 @@ from models.reconstruction.far_field import clearance_factors, far_field_gaussia
 
 def test_keep_out_box_removes_exactly_the_points_inside_it():
     """Same draws as without the box, minus the points inside it; every point stays outside the cameras'
-    sphere; the recipe's materials (opacity 0.1, zero normal) unchanged."""
+    sphere; the recipe's materials (opacity 0.1, zero normal) unchanged, and F0 0: the shell reflects nothing."""
     centre, extent = np.array([0.5, 1.0, -0.2]), 1.0
     free = far_field_gaussians(5000, centre, extent, seed=3)
     lo, hi = centre - np.array([3.0, 1.5, 2.5]), centre + np.array([2.5, 1.5, 3.0])  # a room past the sphere
@@ -25,6 +25,7 @@ def test_keep_out_box_removes_exactly_the_points_inside_it():
     assert not ((kept >= lo) & (kept <= hi)).all(1).any()
     assert (np.linalg.norm(kept - centre, axis=1) > extent).all()
     assert float(boxed.opacities().max()) == pytest.approx(0.1) and not boxed.normals.any()
+    assert not boxed.f0.any() and not free.f0.any()
 
 
 def test_a_box_that_swallows_the_shell_is_an_error_naming_the_count():

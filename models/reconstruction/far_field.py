@@ -4,7 +4,11 @@ Reference recipe: M points, positions N(0, 1) clamped to +-3, times 4 x camera
 extent; points near the cameras removed (here: inside the sphere of radius
 ``extent`` around the cameras' centre, where the captured scene lives); scale =
 0.1 x nearest-neighbour distance, opacity 0.1, diffuse 0.2, normal 0, F0 0.04,
-roughness 0.
+roughness 0. Here F0 is 0: the shell is what lies beyond the captured geometry, lit, not a surface to reflect in
+(its zero normal already stops every path that reaches it). With the reference's 0.04 a test view that sees the
+shell through a thin wall took its F0 into the wall's blend, and a matte wall whose truth reflects nothing showed
+speckles of reflection (zoo_mirror_only, with the hole fill: specular 19.0 -> 19.9 dB tonemapped with the shell's
+F0 set to 0 in the same model; the other rooms' shells are not seen, +-0.02).
 
 Also removed here: points inside ``keep_out``, the box of the captured room (the trainer passes the 0.5-99.5 %
 box of the scene's Gaussians and of the mirror fills', widened to hold every camera: the fills place what the
@@ -50,7 +54,7 @@ def far_field_gaussians(count: int, centre: np.ndarray, extent: float, seed: int
         diffuse=torch.full((n, 3), 0.2, **t),
         normals=torch.zeros((n, 3), **t),
         roughness=torch.zeros((n,), **t),
-        f0=torch.full((n, 3), 0.04, **t),
+        f0=torch.zeros((n, 3), **t),
     )
 
 
