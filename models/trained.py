@@ -97,7 +97,8 @@ def _legacy_tracer(data):
 
 def _legacy_path(data):
     """Path settings written before the Fresnel became an option: those models were trained (and rendered) with
-    the paper's Schlick Fresnel (F90 = 1); before the reflection origin did, from the expected depth."""
+    the paper's Schlick Fresnel (F90 = 1); before the reflection origin did, from the expected depth; before the
+    offset grew at grazing angles, at a fixed distance (origin_grazing 1)."""
     if data is None:
         data = {}
     if isinstance(data, dict) and "fresnel" not in data:
@@ -106,6 +107,8 @@ def _legacy_path(data):
         data = {**data, "reflection_origin": "expected"}
     if isinstance(data, dict) and "diffuse_lobe" not in data:
         data = {**data, "diffuse_lobe": "lambert"}
+    if isinstance(data, dict) and "origin_grazing" not in data:
+        data = {**data, "origin_grazing": 1.0}
     return data
 
 

@@ -249,6 +249,12 @@ class ReconstructConfig:
                                    "reflected ray, as a fraction of the scene's size (the diagonal of the box "
                                    "holding 98 percent of the initial Gaussians: 1 cm in a 4 x 2.5 x 4 m room); the "
                                    "model stores the resulting length", exclusiveMinimum=0, maximum=0.1)
+    origin_grazing: float = setting(_PATH.origin_grazing, "the reflection's start offset (origin_offset) is "
+                                    "divided by max(|cos|, this), cos between the surface normal and the "
+                                    "reflected ray: a grazing reflection crosses the surface's own Gaussians over "
+                                    "their thickness / cos (a chrome ball seen from where no training camera "
+                                    "stood showed a ring of self-shadowed reflections); 1 = a fixed offset; "
+                                    "stored with the model", exclusiveMinimum=0, maximum=1)
     min_throughput: float = setting(0.01, "training only: a reflection path stops where its throughput (max over "
                                     "RGB) is below this; the bounce's value and its gradient are proportional to "
                                     "the throughput, so such a path carries at most this share of a mirror's "
@@ -273,7 +279,8 @@ class ReconstructConfig:
         diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
         so a scene scaled by any factor trains the same. Training adds ``min_throughput`` (``training_path``)."""
         return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler, fresnel=self.fresnel,
-                          origin_offset=self.origin_offset * scene_size, reflection_origin=self.reflection_origin,
+                          origin_offset=self.origin_offset * scene_size, origin_grazing=self.origin_grazing,
+                          reflection_origin=self.reflection_origin,
                           diffuse_lobe=self.diffuse_lobe)
 
     def training_path(self, scene_size: float) -> PathConfig:

@@ -41,6 +41,9 @@ class RenderConfig:
                                             enum=[*REFLECTION_ORIGINS, None])
     diffuse_lobe: str | None = setting(None, "lambert | disney (reconstruct.diffuse_lobe); null = the model's "
                                        "(model.yaml)", enum=[*DIFFUSE_LOBES, None])
+    origin_grazing: float | None = setting(None, "the reflection start offset is divided by max(|cos|, this) "
+                                           "(reconstruct.origin_grazing; 1 = fixed); null = the model's "
+                                           "(model.yaml)", exclusiveMinimum=0, maximum=1)
     hole_fill: bool | None = setting(None, "true | false: a ray's blended diffuse divided by its opacity (the "
                                      "transmittance left at its end takes the colour it blended: "
                                      "reconstruct.hole_fill); null = the model's (model.yaml)")
@@ -58,7 +61,7 @@ class RenderConfig:
     def path(self, model: PathConfig) -> PathConfig:
         """The model's path settings with this render's overrides."""
         over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel", "reflection_origin",
-                                               "diffuse_lobe", "hole_fill")
+                                               "diffuse_lobe", "hole_fill", "origin_grazing")
                 if getattr(self, k) is not None}
         return dataclasses.replace(model, **over)
 
