@@ -345,3 +345,35 @@ def test_hole_fill_gives_what_a_ray_blended_at_full_opacity(backend):
     empty = dataclasses.replace(seg, diffuse=torch.zeros_like(seg.diffuse), transmittance=torch.ones_like(
         seg.transmittance), hit_count=torch.zeros_like(seg.hit_count), blended_count=torch.zeros_like(seg.hit_count))
     assert torch.count_nonzero(fill_hole(empty, PathConfig(hole_fill=True)).diffuse) == 0
+
+
+@pytest.mark.parametrize("grazing", [1.0, 0.1])
+def test_reflections_start_farther_out_the_more_grazing_they_leave(grazing):
+    """A reflection starts ``origin_offset / max(|n . r|, origin_grazing)`` past its surface point along the
+    reflected ray r (a grazing one crosses the surface's own Gaussians over thickness / cos); 1 = a fixed distance
+    (models trained before the option). The flat mirror at z = 0: the points and angles are known exactly."""
+    o, d = camera_rays(dtype=torch.float64)
+    d = torch.cat([d, torch.nn.functional.normalize(d * torch.tensor([6.0, 6.0, 1.0], dtype=torch.float64), dim=1)])
+    o = torch.cat([o, o])  # the same rays and flatter ones: |cos| 0.03-0.2
+    calls = []
+
+    def fn(oo, dd, g):
+        calls.append((oo.clone(), dd.clone()))
+        return reference_trace(oo, dd, g)
+
+    cfg = PathConfig(max_path_length=2, origin_offset=0.05, origin_grazing=grazing)
+    mirror = Gaussians(**{k: v[:1] for k, v in scene().params().items()})  # the mirror alone: every ray meets it
+    trace_paths(fn, o, d, mirror, cfg, torch.Generator().manual_seed(0))
+    start, r = calls[1]
+    # the rows that went on (a path may stop: its Fresnel weight 0): matched by their mirrored direction
+    row = torch.cdist(r, d * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)).argmin(1)
+    assert len(row) >= len(d) - 2
+    assert torch.allclose(r, d[row] * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64), atol=1e-5)
+    hit = (o + d * (-o[:, 2] / d[:, 2])[:, None])[row]
+    cos = r[:, 2].abs()
+    assert (cos < 0.1).any() and (cos > 0.3).any()
+    along = ((start - hit) * r).sum(-1)
+    torch.testing.assert_close(along, 0.05 / cos.clamp_min(grazing), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(start, hit + along[:, None] * r, rtol=1e-6, atol=1e-6)  # on the reflected line
+    with pytest.raises(ValueError, match="origin_grazing"):
+        PathConfig(origin_grazing=0.0)
