@@ -50,7 +50,7 @@ def _carried(mirror_faces: set[int], limit: int = 8, thickness: float = 0.01,
     pts = torch.cat([torch.full((2000, 1), -1.0), torch.rand(2000, 2, generator=g) * 1.6 - 0.8], dim=1)
     normals = torch.tensor([[1.0, 0.0, 0.0]]).repeat(2000, 1)
     tracer = Tracer(TracerConfig(num_threads=2))
-    path = PathConfig(origin_offset=0.01, min_throughput=0.01)
+    path = PathConfig(origin_offset=0.01, min_throughput=0.01, origin_grazing=1.0)  # as training traces
     return carried_throughput(pts, normals, tracer.trace, _box(mirror_faces, thickness=thickness), path, limit, g,
                               stats)
 
@@ -69,12 +69,12 @@ def test_a_hall_of_mirrors_needs_the_limit_a_mirror_among_matte_walls_does_not()
     """All six faces mirrors: nothing ever leaves the box and 0.95^k stays above 0.2 for 30 bounces, so every
     reflection still carries light after any length: the decision takes the limit. Only face 0 a mirror: its
     reflections end on matte walls (0.04 at most); one that comes back to the mirror never reaches it (the
-    opposite face is matte), so after 3 segments nothing carries more than 0.2: the paper's 3. (A reflection leaving
-    at a grazing angle starts up to 10 offsets along the wall, ``PathConfig.origin_grazing``: near the box's edges a
-    few start past the adjacent mirror and leave: 1.2 % after 3 segments and 6.4 % after 8 with the default 0.1,
-    0.7 % and 2.4 % with a fixed offset.)"""
+    opposite face is matte), so after 3 segments nothing carries more than 0.2: the paper's 3. (Training's paths, as
+    the decision's: a fixed offset. With the renders' grazing offset, ``PathConfig.origin_grazing`` 0.1, a few
+    reflections near the box's edges start past the adjacent mirror and leave: 1.2 % after 3 segments and 6.4 %
+    after 8, against 0.7 % and 2.4 % here.)"""
     hall = _carried(set(range(6)))
-    assert going_on(hall, 3, 0.2) > 0.98 and going_on(hall, 8, 0.2) > 0.9
+    assert going_on(hall, 3, 0.2) > 0.99 and going_on(hall, 8, 0.2) > 0.95
     assert needed_length(hall, 3, 8, 0.2, 0.05) == 8
     single = _carried({0})
     assert going_on(single, 3, 0.2) == 0.0

@@ -841,6 +841,9 @@ def test_hole_fill_is_decided_on_the_trained_model_logged_and_stored(monkeypatch
     assert decide(closed) is True
     assert "hole fill on in the renders: 0.00% of the training pixels" in trainer.decisions[-1]
     assert trainer.path_config(training=True).hole_fill is False and trainer.path_config().hole_fill is False
+    # likewise the grazing offset: training starts reflections a fixed offset out, the model's renders do not
+    assert trainer.path_config(training=True).origin_grazing == trainer.path_config().origin_grazing == 1.0
+    assert trainer.settings().path.origin_grazing == trainer.config.origin_grazing == 0.1
     look = -torch.tensor(capture.split("train")[0].camera.c2w[:3, 2], dtype=torch.float32)  # the first view's axis
     axis = int(look.abs().argmax())
     gone = closed.means[:, axis] * look[axis].sign() > 0.9  # the wall it faces
