@@ -3,7 +3,7 @@
 A closed room leaves no ray a way out: every pixel of every view ends on a surface. A model of one still lets
 rays through where its surfaces hold too few Gaussians, and that happens exactly where the test views look and
 the training views did not (a wall behind every camera, seen only in a mirror: 12-22 % of zoo_mirror_only's
-test pixels keep a transmittance above 0.05, and showed the black behind it, a test view 11-15 % darker than the
+test pixels keep a transmittance above 0.05, and showed the black behind it, a test view 6-15 % darker than the
 truth). The fill divides what such a ray blended by its opacity. Where the training views themselves look past
 the scene (an object on a black background: the ray ends on nothing, and black is the truth there), it would
 turn every half-covered silhouette pixel into a solid one, so it is used only where the training views are
