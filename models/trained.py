@@ -98,7 +98,8 @@ def _legacy_tracer(data):
 def _legacy_path(data):
     """Path settings written before the Fresnel became an option: those models were trained (and rendered) with
     the paper's Schlick Fresnel (F90 = 1); before the reflection origin did, from the expected depth; before the
-    offset grew at grazing angles, at a fixed distance (origin_grazing 1)."""
+    offset grew at grazing angles, at a fixed distance (origin_grazing 1); before the back of a surface had its own
+    rule, with the flipped normal (back_normal flip)."""
     if data is None:
         data = {}
     if isinstance(data, dict) and "fresnel" not in data:
@@ -109,6 +110,8 @@ def _legacy_path(data):
         data = {**data, "diffuse_lobe": "lambert"}
     if isinstance(data, dict) and "origin_grazing" not in data:
         data = {**data, "origin_grazing": 1.0}
+    if isinstance(data, dict) and "back_normal" not in data:
+        data = {**data, "back_normal": "flip"}
     return data
 
 

@@ -185,7 +185,8 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
     model writes its mode, and the default is "schlick_f90". Likewise ``path.reflection_origin``: older models
     started reflections at the expected depth and load as "expected"; new ones write theirs (default "front"); and
     ``path.diffuse_lobe``: older models' diffuse was the same from every side ("lambert"; default "disney"); and
-    ``path.origin_grazing``: older models started every reflection a fixed distance past its surface (1)."""
+    ``path.origin_grazing``: older models started every reflection a fixed distance past its surface (1); and
+    ``path.back_normal``: older models flipped a normal met from behind ("flip"; default "mirror")."""
     from models.gaussians import random_gaussians
     from models.pathtrace.paths import PathConfig
 
@@ -197,10 +198,11 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
     assert read_settings(tmp_path / "m").path.reflection_origin == PathConfig().reflection_origin == "front"
     assert read_settings(tmp_path / "m").path.diffuse_lobe == PathConfig().diffuse_lobe == "disney"
     assert read_settings(tmp_path / "m").path.origin_grazing == PathConfig().origin_grazing == 0.1
+    assert read_settings(tmp_path / "m").path.back_normal == PathConfig().back_normal == "mirror"
     for path in ({"max_path_length": 3, "sampler": "vndf"}, None):
         (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, **({"path": path} if path else {})}))
         assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected", diffuse_lobe="lambert",
-                                                                   origin_grazing=1.0)
+                                                                   origin_grazing=1.0, back_normal="flip")
     (tmp_path / "m" / MODEL_FILE).write_text(yaml.safe_dump({"format": 1, "path": {"fresnel": "fresnell"}}))
     with pytest.raises(ValueError, match="model.yaml path: fresnel must be one of"):
         read_settings(tmp_path / "m")
@@ -209,4 +211,4 @@ def test_model_yaml_from_before_the_fresnel_option_keeps_the_papers_schlick(tmp_
         read_settings(tmp_path / "m")
     (tmp_path / "m" / MODEL_FILE).unlink()  # no model.yaml at all (older still): the defaults, that Fresnel and origin
     assert read_settings(tmp_path / "m").path == PathConfig(fresnel="schlick", reflection_origin="expected", diffuse_lobe="lambert",
-                                                                   origin_grazing=1.0)
+                                                                   origin_grazing=1.0, back_normal="flip")

@@ -50,7 +50,7 @@ def _carried(mirror_faces: set[int], limit: int = 8, thickness: float = 0.01,
     pts = torch.cat([torch.full((2000, 1), -1.0), torch.rand(2000, 2, generator=g) * 1.6 - 0.8], dim=1)
     normals = torch.tensor([[1.0, 0.0, 0.0]]).repeat(2000, 1)
     tracer = Tracer(TracerConfig(num_threads=2))
-    path = PathConfig(origin_offset=0.01, min_throughput=0.01, origin_grazing=1.0)  # as training traces
+    path = PathConfig(origin_offset=0.01, min_throughput=0.01, origin_grazing=1.0, back_normal="flip")  # as training
     return carried_throughput(pts, normals, tracer.trace, _box(mirror_faces, thickness=thickness), path, limit, g,
                               stats)
 

@@ -8,7 +8,7 @@ import torch
 
 from models.gaussians import Gaussians
 from models.pathtrace.brdf import diffuse_view_factor
-from models.pathtrace.paths import PathConfig, trace_paths
+from models.pathtrace.paths import BACK_NORMALS, PathConfig, back_normal_from_behind, trace_paths
 from models.tracer import Tracer, TracerConfig, reference_trace
 
 
@@ -377,3 +377,63 @@ def test_reflections_start_farther_out_the_more_grazing_they_leave(grazing):
     torch.testing.assert_close(start, hit + along[:, None] * r, rtol=1e-6, atol=1e-6)  # on the reflected line
     with pytest.raises(ValueError, match="origin_grazing"):
         PathConfig(origin_grazing=0.0)
+
+
+def test_a_back_facing_normal_mirrored_across_the_ray_is_a_balls_far_side_normal():
+    """``back_normal_from_behind``: a ray that enters a ball through its unseen far side meets the inside of the
+    seen half at p1, whose normal faces away from the ray. "mirror" gives exactly the normal the ball has where
+    the ray should have met it first (p2); "flip" gives -n (a thin sheet's other side); front-facing normals are
+    kept by both. Random balls and chords, float64."""
+    gen = torch.Generator().manual_seed(3)
+    rows = 500
+    centre = torch.randn(rows, 3, generator=gen, dtype=torch.float64)
+    radius = 0.2 + torch.rand(rows, generator=gen, dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.randn(rows, 3, generator=gen, dtype=torch.float64), dim=1)
+    # a chord: its midpoint m = centre + a with a normal to d, |a| < radius
+    a = torch.randn(rows, 3, generator=gen, dtype=torch.float64)
+    a = torch.nn.functional.normalize(a - (a * d).sum(-1, keepdim=True) * d, dim=1)
+    a = a * (radius * torch.rand(rows, generator=gen, dtype=torch.float64) * 0.99)[:, None]
+    half = (radius ** 2 - (a * a).sum(-1)).sqrt()
+    p1 = centre + a + half[:, None] * d  # the far intersection (the seen half, met from inside)
+    p2 = centre + a - half[:, None] * d  # the near one (the unseen far side)
+    n1 = (p1 - centre) / radius[:, None]
+    n2 = (p2 - centre) / radius[:, None]
+    wo = -d
+    assert ((n1 * wo).sum(-1) < 0).all()
+    mirrored = back_normal_from_behind(n1, wo, "mirror")
+    torch.testing.assert_close(mirrored, n2, rtol=0, atol=1e-12)
+    torch.testing.assert_close(back_normal_from_behind(n1, wo, "flip"), -n1, rtol=0, atol=0)
+    for rule in BACK_NORMALS:  # seen from the front: kept
+        torch.testing.assert_close(back_normal_from_behind(n2, wo, rule), n2, rtol=0, atol=0)
+    # both face the ray; the reflected directions agree only at the grazing limit
+    assert ((mirrored * wo).sum(-1) > 0).all()
+    with pytest.raises(ValueError, match="back_normal"):
+        back_normal_from_behind(n1, wo, "outward")
+    with pytest.raises(ValueError, match="back_normal"):
+        PathConfig(back_normal="outward")
+
+
+@pytest.mark.parametrize("rule", BACK_NORMALS)
+def test_a_mirror_seen_from_behind_reflects_by_the_configured_rule(rule):
+    """``PathConfig.back_normal`` reaches the bounce: the flat mirror at z = 0 (normal +z) seen from below (every
+    vertex back-facing): flip reflects as a mirror facing down, mirror as one whose normal is n - 2 (n . wo) wo."""
+    o, d = camera_rays(dtype=torch.float64)
+    o, d = o * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64), d * torch.tensor([1.0, 1.0, -1.0],
+                                                                                      dtype=torch.float64)
+    calls = []
+
+    def fn(oo, dd, g):
+        calls.append(dd.clone())
+        return reference_trace(oo, dd, g)
+
+    mirror = Gaussians(**{k: v[:1] for k, v in scene().params().items()})
+    trace_paths(fn, o, d, mirror, PathConfig(max_path_length=2, back_normal=rule), torch.Generator().manual_seed(0))
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(d)
+    normal = -n if rule == "flip" else n + 2.0 * (n * d).sum(-1, keepdim=True) * -d
+    want = d - 2.0 * (d * normal).sum(-1, keepdim=True) * normal
+    got = calls[1]
+    row = torch.cdist(got, want).argmin(1)  # the rows that went on
+    assert len(row) >= len(d) - 2
+    torch.testing.assert_close(got, want[row], rtol=0, atol=1e-6)
+    if rule == "flip":
+        assert (got[:, 2] < 0).all()  # back down, away from the mirror's seen side

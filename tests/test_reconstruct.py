@@ -844,6 +844,8 @@ def test_hole_fill_is_decided_on_the_trained_model_logged_and_stored(monkeypatch
     # likewise the grazing offset: training starts reflections a fixed offset out, the model's renders do not
     assert trainer.path_config(training=True).origin_grazing == trainer.path_config().origin_grazing == 1.0
     assert trainer.settings().path.origin_grazing == trainer.config.origin_grazing == 0.1
+    assert trainer.path_config(training=True).back_normal == trainer.path_config().back_normal == "flip"
+    assert trainer.settings().path.back_normal == trainer.config.back_normal == "mirror"
     look = -torch.tensor(capture.split("train")[0].camera.c2w[:3, 2], dtype=torch.float32)  # the first view's axis
     axis = int(look.abs().argmax())
     gone = closed.means[:, axis] * look[axis].sign() > 0.9  # the wall it faces

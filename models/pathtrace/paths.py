@@ -34,6 +34,7 @@ TraceFn = Callable[[torch.Tensor, torch.Tensor, Gaussians], TraceOutput]
 
 
 REFLECTION_ORIGINS = ("front", "expected")
+BACK_NORMALS = ("flip", "mirror")
 
 # hole_fill: a ray that blended less opacity than this is divided by it instead (at most 10x brighter): it passed
 # beside the scene, or through a faint floater, rather than through a half-covered surface
@@ -71,6 +72,13 @@ class PathConfig:
     # covered by too few Gaussians (mirror-only ones: 12-22 % of a test view's pixels keep T_end > 0.05), and
     # without it the black behind them (the paper's background 0). Off in training; stages.reconstruct turns it on
     # in the model it writes where the training views are opaque (ReconstructConfig.hole_fill)
+    back_normal: str = "mirror"  # the normal a reflection takes where the blended normal faces away from the ray
+    # (n . wo < 0: the ray met the BACK of what was reconstructed): mirror (n - 2 (n . wo) wo, n mirrored across
+    # the plane normal to the ray: exactly a ball's far-side normal where the ray entered it through the side no
+    # training camera saw and met the inside of the seen half; back_normal_from_behind) | flip (-n: a thin sheet's
+    # other side; the back of a ball's seen half then reflects as a concave bowl, the wrong half of the room, and a
+    # reflection that re-entered the Gaussians it left is sent back into them). Training traces flip
+    # (ReconstructConfig.path); models trained before the option read flip (models/trained.py)
 
     def __post_init__(self) -> None:
         if self.max_path_length < 1:
@@ -85,6 +93,8 @@ class PathConfig:
             raise ValueError(f"reflection_origin must be one of {REFLECTION_ORIGINS}, got {self.reflection_origin!r}")
         if not 0.0 < self.origin_grazing <= 1.0:
             raise ValueError(f"origin_grazing must be in (0, 1], got {self.origin_grazing}")
+        if self.back_normal not in BACK_NORMALS:
+            raise ValueError(f"back_normal must be one of {BACK_NORMALS}, got {self.back_normal!r}")
         if self.diffuse_lobe not in DIFFUSE_LOBES:
             raise ValueError(f"diffuse_lobe must be one of {DIFFUSE_LOBES}, got {self.diffuse_lobe!r}")
 
@@ -180,6 +190,24 @@ class PathOutput:
         return self.primary.diffuse + self.specular
 
 
+def back_normal_from_behind(normal: torch.Tensor, wo: torch.Tensor, rule: str) -> torch.Tensor:
+    """[R, 3] the shading normal at a vertex whose unit blended ``normal`` [R, 3] may face away from the unit
+    direction back along the ray ``wo`` [R, 3]; front-facing normals are kept. A back-facing one (``PathConfig.
+    back_normal``): "flip" gives -n; "mirror" gives n - 2 (n . wo) wo, n mirrored across the plane normal to the
+    ray (unit, facing wo). Where a ray enters a ball through its unseen far side and meets the inside of the seen
+    half at p1, the seen normal there is (a + s d) / r (a: centre to the chord's midpoint, normal to the ray's
+    direction d; s: half the chord); the far side's normal where the ray should have met it is (a - s d) / r, the
+    mirrored one. Both give the same reflected direction at a grazing back-facing normal's limit (n . wo -> 0)."""
+    cos = (normal * wo).sum(-1, keepdim=True)
+    if rule == "flip":
+        other = -normal
+    elif rule == "mirror":
+        other = normal - 2.0 * cos * wo
+    else:
+        raise ValueError(f"back_normal must be one of {BACK_NORMALS}, got {rule!r}")
+    return torch.where(cos < 0, other, normal)
+
+
 def _scale_grad(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """x in the forward pass, scale * dL/dx in the backward pass."""
     return x.detach() + scale * (x - x.detach())
@@ -214,8 +242,7 @@ def trace_paths(
             v = vertex(seg, config)
         keep, f0 = v.reflects, v.f0
         wo = -d
-        # a vertex seen from behind reflects as seen from the front (accumulated normals can point away)
-        n = torch.where(((v.normal * wo).sum(-1) < 0)[:, None], -v.normal, v.normal)
+        n = back_normal_from_behind(v.normal, wo, config.back_normal)
         rough = v.roughness.clamp(config.min_roughness, 1.0)
         x = o + d * vertex_depth(seg, config.reflection_origin)
         # drawn where the generator lives (a CPU generator gives the same paths on every device)

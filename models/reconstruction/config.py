@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from models.pathtrace.brdf import DIFFUSE_LOBES, FRESNEL_MODES
-from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig
+from models.pathtrace.paths import BACK_NORMALS, REFLECTION_ORIGINS, PathConfig
 from models.reconstruction.hole_fill import HOLE_FILL_MODES
 from models.settings import from_dict, setting
 from models.tracer.config import TracerConfig
@@ -257,6 +257,15 @@ class ReconstructConfig:
                                     "Renders only: training keeps a fixed offset (trained with 0.1 the zoo moved "
                                     "-0.73 to +0.93 dB, the facing metal walls worst; rendered with it, nothing "
                                     "lost: README); stored with the model", exclusiveMinimum=0, maximum=1)
+    back_normal: str = setting(_PATH.back_normal, "the normal a reflection takes where a ray meets the BACK "
+                               "of what was reconstructed (the blended normal faces away from it): mirror (n "
+                               "mirrored across the plane normal to the ray: exactly a ball's far-side normal where "
+                               "a test view looks through the side no training camera saw at the inside of the "
+                               "seen half; zoo_spheres 24.49 -> 25.21 dB rendered, the other zoo rooms and the demo "
+                               "within 0.02) | flip (-n, a thin sheet's other side: that inside reflects as a "
+                               "concave bowl). Renders only: training flips (trained with mirror the zoo moved "
+                               "-0.12 to +0.46: README); stored with the model (paths.back_normal_from_behind)",
+                               enum=list(BACK_NORMALS))
     min_throughput: float = setting(0.01, "training only: a reflection path stops where its throughput (max over "
                                     "RGB) is below this; the bounce's value and its gradient are proportional to "
                                     "the throughput, so such a path carries at most this share of a mirror's "
@@ -280,12 +289,13 @@ class ReconstructConfig:
         """The path settings this model trains (and is rendered) with, in a scene of size ``scene_size`` (the
         diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
         so a scene scaled by any factor trains the same. Training adds ``min_throughput`` (``training_path``).
-        Training starts every reflection a fixed offset past its surface (``origin_grazing`` 1); the model it writes
-        renders with ``origin_grazing`` (Trainer.settings)."""
+        Training starts every reflection a fixed offset past its surface (``origin_grazing`` 1) and flips a normal
+        met from behind (``back_normal`` flip); the model it writes renders with ``origin_grazing`` and
+        ``back_normal`` (Trainer.settings)."""
         return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler, fresnel=self.fresnel,
                           origin_offset=self.origin_offset * scene_size, origin_grazing=1.0,
                           reflection_origin=self.reflection_origin,
-                          diffuse_lobe=self.diffuse_lobe)
+                          diffuse_lobe=self.diffuse_lobe, back_normal="flip")
 
     def training_path(self, scene_size: float) -> PathConfig:
         """``path`` with the training-only path cut-off (``min_throughput``)."""

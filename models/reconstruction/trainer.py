@@ -880,10 +880,11 @@ class Trainer:
 
     def settings(self) -> ModelSettings:
         """How the trained model renders (stored as its model.yaml): this run's tracer and path settings, the hole
-        fill decided on the trained model (``_decide_hole_fill``) and the renders' grazing offset
-        (``ReconstructConfig.origin_grazing``; training keeps a fixed one)."""
+        fill decided on the trained model (``_decide_hole_fill``), the renders' grazing offset
+        (``ReconstructConfig.origin_grazing``; training keeps a fixed one) and their rule for a normal met from
+        behind (``ReconstructConfig.back_normal``; training flips)."""
         path = dataclasses.replace(self.path_config(), hole_fill=self._decide_hole_fill(),
-                                   origin_grazing=self.config.origin_grazing)
+                                   origin_grazing=self.config.origin_grazing, back_normal=self.config.back_normal)
         return ModelSettings(tracer=self.config.tracer, path=path, units=self.units,
                              training={"config_hash": config_hash(to_dict(self.config, runtime=False)), "steps": self.step,
                                        "gaussians": len(self.params["means"])})

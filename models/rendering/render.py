@@ -18,7 +18,7 @@ from tqdm import tqdm
 from models.capture import Camera
 from models.gaussians import Gaussians
 from models.pathtrace.brdf import DIFFUSE_LOBES, FRESNEL_MODES
-from models.pathtrace.paths import REFLECTION_ORIGINS, PathConfig, shade_diffuse, trace_paths
+from models.pathtrace.paths import BACK_NORMALS, REFLECTION_ORIGINS, PathConfig, shade_diffuse, trace_paths
 from models.settings import from_dict, setting
 
 from .denoise import denoise
@@ -47,6 +47,9 @@ class RenderConfig:
     hole_fill: bool | None = setting(None, "true | false: a ray's blended diffuse divided by its opacity (the "
                                      "transmittance left at its end takes the colour it blended: "
                                      "reconstruct.hole_fill); null = the model's (model.yaml)")
+    back_normal: str | None = setting(None, "flip | mirror: the normal a reflection takes where a ray meets the "
+                                      "back of what was reconstructed (reconstruct.back_normal); null = the "
+                                      "model's (model.yaml)", enum=[*BACK_NORMALS, None])
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
@@ -61,7 +64,8 @@ class RenderConfig:
     def path(self, model: PathConfig) -> PathConfig:
         """The model's path settings with this render's overrides."""
         over = {k: getattr(self, k) for k in ("max_path_length", "sampler", "fresnel", "reflection_origin",
-                                               "diffuse_lobe", "hole_fill", "origin_grazing")
+                                               "diffuse_lobe", "hole_fill", "origin_grazing",
+                                               "back_normal")
                 if getattr(self, k) is not None}
         return dataclasses.replace(model, **over)
 
