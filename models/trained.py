@@ -95,23 +95,19 @@ def _legacy_tracer(data):
     return data
 
 
+# path settings that became options after models were written, with the value those models were trained and
+# rendered with: the paper's Schlick Fresnel (F90 = 1), reflections from the expected depth, a diffuse radiance the
+# same from every side, a fixed reflection offset at grazing angles, a normal met from behind flipped
+LEGACY_PATH = {"fresnel": "schlick", "reflection_origin": "expected", "diffuse_lobe": "lambert",
+               "origin_grazing": 1.0, "back_normal": "flip"}
+
+
 def _legacy_path(data):
-    """Path settings written before the Fresnel became an option: those models were trained (and rendered) with
-    the paper's Schlick Fresnel (F90 = 1); before the reflection origin did, from the expected depth; before the
-    offset grew at grazing angles, at a fixed distance (origin_grazing 1); before the back of a surface had its own
-    rule, with the flipped normal (back_normal flip)."""
+    """Path settings as written, with ``LEGACY_PATH``'s value for every option the model does not name."""
     if data is None:
         data = {}
-    if isinstance(data, dict) and "fresnel" not in data:
-        data = {**data, "fresnel": "schlick"}
-    if isinstance(data, dict) and "reflection_origin" not in data:
-        data = {**data, "reflection_origin": "expected"}
-    if isinstance(data, dict) and "diffuse_lobe" not in data:
-        data = {**data, "diffuse_lobe": "lambert"}
-    if isinstance(data, dict) and "origin_grazing" not in data:
-        data = {**data, "origin_grazing": 1.0}
-    if isinstance(data, dict) and "back_normal" not in data:
-        data = {**data, "back_normal": "flip"}
+    if isinstance(data, dict):
+        data = {**LEGACY_PATH, **data}
     return data
 
 
