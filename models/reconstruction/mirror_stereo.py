@@ -49,7 +49,8 @@ from scipy.ndimage import uniform_filter
 
 from models.gaussians import Gaussians
 
-from .reflection_fill import LUMINANCE, box_exit, matte_gaussians, matte_material, scene_box, seen_empty, shiny
+from .reflection_fill import (LUMINANCE, box_exit, matte_gaussians, scene_box, seen_empty, shiny,
+                              unseen_material)
 
 log = logging.getLogger(__name__)
 
@@ -427,4 +428,4 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     stats["along"] = (seen_along[pick], spans[pick])
     return matte_gaussians(torch.from_numpy(pos), torch.from_numpy(scale).clamp_min(1e-6), opacity,
                            torch.from_numpy(colour).clamp(0.0, 100.0), dtype,
-                           facing=torch.from_numpy(seen_along[pick]), material=matte_material(gaussians)), stats
+                           facing=torch.from_numpy(seen_along[pick]), material=unseen_material(gaussians)), stats

@@ -13,8 +13,8 @@ views the reflected rays of one unseen point cross there, so training keeps the 
 (they explain several views' reflections) and prunes the rest.
 
 Each starts with the colour the reflection needs, ``specular / F0`` of its pixel (a mirror's specular is
-F0 times the reflected radiance), opacity 0.1, the scene's typical matte material (``matte_material``: it is
-seen, not a mirror), its normal facing back along the reflected ray it was found on (the side it was seen
+F0 times the reflected radiance), opacity 0.1, the material of what no view looks at (``unseen_material``: the
+room's matte roughness, F0 0), its normal facing back along the reflected ray it was found on (the side it was seen
 from: a view that later looks at it directly then traces its sheen, where a zero normal would stop every
 path there and leave its specular black), scale half the spacing along its ray.
 """
@@ -58,6 +58,17 @@ def matte_material(gaussians: Gaussians) -> tuple[float, float]:
     if not bool(matte.any()):
         return MATTE_ROUGHNESS, MATTE_F0
     return float(rough[matte].clamp(0, 1).median()), float(f0[matte].mean(-1).clamp(0, 1).median())
+
+
+def unseen_material(gaussians: Gaussians) -> tuple[float, float]:
+    """(roughness, F0) of what a fill places where no training view looks (mirror stereo, the reflection fill,
+    room closing): the room's matte roughness (``matte_material``) and F0 0. Nothing supervises their material
+    (the G-buffer loss needs a view of them, and the trainer holds a mirror fill's material fixed: fill_matte),
+    and the room's median F0 is often its glossy floor's: room closing's walls reflected zoo_thin's window and lamps
+    (specular 28.03 -> 22.88 dB), mirror stereo's plinth in zoo_mirror_only its floor's sheen, where the truth
+    reflects nothing. F0 0 reflects nothing (F90 follows F0); the reflections that show them still train their
+    colour."""
+    return matte_material(gaussians)[0], 0.0
 
 
 def matte_gaussians(pos: torch.Tensor, scale: torch.Tensor, opacity: float, colour: torch.Tensor,
@@ -207,7 +218,7 @@ def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, 
         else torch.full((len(index), 3), 0.2, dtype=pos.dtype)
     stats["added"] = len(pos)
     return matte_gaussians(pos, 0.5 * spacing.clamp_min(1e-6), 0.1, colour.clamp(0.0, 100.0), dtype, facing=r,
-                           material=matte_material(gaussians)), stats
+                           material=unseen_material(gaussians)), stats
 
 
 def _exit_purity(x, r, b, lo, hi, s: float, k: int) -> float:

@@ -41,7 +41,7 @@ their reflections hold enough view-cells only 0.2 m past the box, the wall is 0.
 one at a time, the clearest first; each wall found bounds the next sweeps (a front wall ends at the ceiling found
 before it). A wall is one Gaussian per grid point of the plane inside the other
 bounds (the plane fill's spacing, coarser to fit the budget), not where a training view sees empty space, matte
-(the roughness of the room's other matte Gaussians, ``matte_material``, and F0 0: a guessed F0, never trained,
+(``unseen_material``: the roughness of the room's other matte Gaussians and F0 0; a guessed F0, never trained,
 lit zoo_thin's closed ceiling with reflections of its window), its colour the median radiance of the 16
 nearest landed reflections that show no light (lights are the highlight fill's; training refines the colour); the
 points are returned so that the plane fill reaches the new wall (``extend_plane_fill``)."""
@@ -59,8 +59,8 @@ from models.gaussians import Gaussians
 from models.pathtrace.brdf import fresnel_schlick
 
 from .plane_fill import Room, _grid, _surfels, box_corners, open_sides
-from .reflection_fill import (HIGHLIGHT_BRIGHTNESS, LUMINANCE, diffuse_level, matte_material, mirror_rays,
-                              scene_box, seen_empty)
+from .reflection_fill import (HIGHLIGHT_BRIGHTNESS, LUMINANCE, diffuse_level, mirror_rays, scene_box, seen_empty,
+                              unseen_material)
 
 CLOSE_ROUGHNESS = 0.15   # reflections sharp enough to say where what they show is
 GLOSSY_ROUGHNESS = 0.4   # the second pass, on the sides still open: glossy reflections (blurred, but they point)
@@ -295,11 +295,7 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
             break
         h *= math.sqrt(sum(len(g) for g in grids) / count) * 1.05
     parts, all_points = [], []
-    # the roughness of the room's ordinary surfaces, and F0 0: nothing supervises a wall no view sees (the G-buffer
-    # loss needs a view of it), and the room's typical F0 (its floor's, often) reflected the window and the lamps
-    # off zoo_thin's closed ceiling, which reflects nothing (specular 28.03 -> 22.88 dB); F0 = 0 reflects nothing
-    # (F90 follows F0), and the room's reflections of the wall still train its colour
-    rough, f0 = matte_material(gaussians)[0], 0.0
+    rough, f0 = unseen_material(gaussians)  # the room's matte roughness, F0 0 (reflection_fill.unseen_material)
     for (n, s, points, colours), g in zip(walls, grids):
         if not len(g):
             continue
