@@ -51,6 +51,12 @@ class LearningRates:
     rotation: float = setting(0.001, minimum=0)
 
 
+# path settings that only a trained model's renders take from the config: training keeps these values (every
+# reflection a fixed offset past its surface, a normal met from behind flipped), and Trainer.settings writes the
+# config's into model.yaml (reconstruct.origin_grazing, reconstruct.back_normal)
+RENDER_ONLY_PATH = {"origin_grazing": 1.0, "back_normal": "flip"}
+
+
 @dataclass
 class ReconstructConfig:
     """Reconstruction of one Gaussian scene with path-traced reflections."""
@@ -289,13 +295,11 @@ class ReconstructConfig:
         """The path settings this model trains (and is rendered) with, in a scene of size ``scene_size`` (the
         diagonal of its initial geometry, models.reconstruction.trainer.scene_size): lengths are fractions of it,
         so a scene scaled by any factor trains the same. Training adds ``min_throughput`` (``training_path``).
-        Training starts every reflection a fixed offset past its surface (``origin_grazing`` 1) and flips a normal
-        met from behind (``back_normal`` flip); the model it writes renders with ``origin_grazing`` and
-        ``back_normal`` (Trainer.settings)."""
+        Training takes ``RENDER_ONLY_PATH``'s values (a fixed reflection offset, a normal met from behind flipped);
+        the model it writes renders with this config's (Trainer.settings)."""
         return PathConfig(max_path_length=self.max_path_length, sampler=self.sampler, fresnel=self.fresnel,
-                          origin_offset=self.origin_offset * scene_size, origin_grazing=1.0,
-                          reflection_origin=self.reflection_origin,
-                          diffuse_lobe=self.diffuse_lobe, back_normal="flip")
+                          origin_offset=self.origin_offset * scene_size, reflection_origin=self.reflection_origin,
+                          diffuse_lobe=self.diffuse_lobe, **RENDER_ONLY_PATH)
 
     def training_path(self, scene_size: float) -> PathConfig:
         """``path`` with the training-only path cut-off (``min_throughput``)."""

@@ -35,7 +35,7 @@ from models.trained import ModelSettings
 
 from .anchors import Anchors, facing_surfels
 from .batches import RayBatcher
-from .config import ReconstructConfig
+from .config import RENDER_ONLY_PATH, ReconstructConfig
 from .data import RaySet, build_rayset
 from .far_field import clearance_factors, far_field_gaussians
 from .hole_fill import decide as decide_hole_fill
@@ -880,11 +880,11 @@ class Trainer:
 
     def settings(self) -> ModelSettings:
         """How the trained model renders (stored as its model.yaml): this run's tracer and path settings, the hole
-        fill decided on the trained model (``_decide_hole_fill``), the renders' grazing offset
-        (``ReconstructConfig.origin_grazing``; training keeps a fixed one) and their rule for a normal met from
-        behind (``ReconstructConfig.back_normal``; training flips)."""
+        fill decided on the trained model (``_decide_hole_fill``) and the config's values of the render-only path
+        settings (``RENDER_ONLY_PATH``: the grazing offset, the rule for a normal met from behind; training keeps
+        fixed ones)."""
         path = dataclasses.replace(self.path_config(), hole_fill=self._decide_hole_fill(),
-                                   origin_grazing=self.config.origin_grazing, back_normal=self.config.back_normal)
+                                   **{k: getattr(self.config, k) for k in RENDER_ONLY_PATH})
         return ModelSettings(tracer=self.config.tracer, path=path, units=self.units,
                              training={"config_hash": config_hash(to_dict(self.config, runtime=False)), "steps": self.step,
                                        "gaussians": len(self.params["means"])})
