@@ -286,7 +286,7 @@ def test_errors_name_the_edit_op_and_key():
          r"edit 'e'\.select\.box: min \[1\.0, 0\.0, 0\.0\] exceeds max"),
         ({"ops": [], "select": {"all": True}}, r"edit 'e'\.ops: must be a non-empty list"),
         ({"ops": [{"op": "delete"}], "select": {"all": True}, "ground_truht": []},
-         r"edit 'e': unknown key\(s\) 'ground_truht' \(known: description, ground_truth, ops, select, truth\)"),
+         r"edit 'e': unknown key\(s\) 'ground_truht' \(known: description, ground_truth, ops, relight, select, truth\)"),
     ]
     for spec, pattern in cases:
         with pytest.raises(EditSpecError, match=pattern):

@@ -10,6 +10,7 @@ plus (synthetic scenes) the same edit of the Mitsuba scene spec as ground truth:
         - {op: translate, offset: [0.35, 0, 0.45]}        # uses the edit's select
         - {op: set_roughness, value: 0.1, select: {...}}  # its own selection
         - {op: set_albedo, value: [0.8, 0.6, 0.1]}        # Lambertian albedo (traced; samples: 64 rays each)
+      relight: auto                            # the light follows the edit (relight.py): auto | true | false
       ground_truth:                            # models/synth/edits.py ops, by object name
         - {op: translate, object: mirror_ball, offset: [0.35, 0, 0.45]}
 
@@ -55,7 +56,7 @@ OPS: dict[str, tuple[frozenset, frozenset]] = {
     "set_albedo": (frozenset({"value"}), frozenset({"samples"})),
 }
 ALBEDO_SAMPLES = 64  # set_albedo: default cosine-distributed rays per Gaussian
-EDIT_KEYS = ("description", "select", "ops", "ground_truth", "truth")
+EDIT_KEYS = ("description", "select", "ops", "ground_truth", "truth", "relight")
 
 
 class EditSpecError(ValueError):
@@ -106,6 +107,7 @@ class EditSpec:
     description: str = ""
     ground_truth: tuple[dict, ...] | None = None  # synth edit list (validated by models/synth/edits.py)
     truth: str | None = None  # a capture folder of the edited scene's test views the user already has
+    relight: str | bool = "auto"  # the light follows the edit (relight.py): auto | true | false
 
 
 # --------------------------------------------------------------------------------------- helpers
@@ -283,7 +285,12 @@ def parse_edit(name: str, d: Any) -> EditSpec:
     truth = d.get("truth")
     if truth is not None and (not isinstance(truth, str) or not truth):
         raise _fail(f"{where}.truth", f"must be the path of a capture folder, got {truth!r}")
-    return EditSpec(name=name, ops=parsed, select=select, description=desc, ground_truth=gt, truth=truth)
+    relight = d.get("relight", "auto")
+    if not (isinstance(relight, bool) or relight == "auto"):
+        raise _fail(f"{where}.relight", f"must be auto, true or false (the light follows the edit: shadows move with "
+                                        f"what casts them), got {relight!r}")
+    return EditSpec(name=name, ops=parsed, select=select, description=desc, ground_truth=gt, truth=truth,
+                    relight=relight)
 
 
 def parse_edits(d: Any, where: str = "edits") -> dict[str, EditSpec]:

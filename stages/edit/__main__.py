@@ -96,6 +96,7 @@ def _apply(args: argparse.Namespace) -> int:
     (args.out / "stage.json").unlink(missing_ok=True)
     with staged_folder(args.out / "model") as out:
         save_model(out, edited, settings)
+    edited, _ = load_model(args.out / "model")  # render the model as written (the PLY's colour encoding rounds)
     tracer.update(edited, rebuild=True)
     views = capture.split("test") or capture.split("train")
     with staged_folder(args.out / "renders") as out:
@@ -103,8 +104,8 @@ def _apply(args: argparse.Namespace) -> int:
     write_stage_json(args.out, "edit", {"edit": raw, "render": section}, time.perf_counter() - start,
                      device=args.device, extra={"edit": spec.name, "ops": report, "render_spp": config.spp,
                                                 "seconds_per_view": timings, "model": settings.to_dict()})
-    print(json.dumps({"edit": spec.name, "ops": [{k: r[k] for k in ("op", "selected", "gaussians_after")}
-                                                  for r in report]}))
+    print(json.dumps({"edit": spec.name, "ops": [{k: r[k] for k in ("op", "selected", "gaussians_after", "relit",
+                                                                     "changed") if k in r} for r in report]}))
     return 0
 
 

@@ -168,7 +168,8 @@ def edits_section(scene_dir: Path) -> str:
     for d in edit_dirs:
         m = _json(d / "metrics.json")
         ed, un, ch = m.get("edited_vs_truth", {}), m.get("unedited_vs_truth", {}), m.get("changed_region", {})
-        caught = ", ".join(str(op.get("selected")) for op in m.get("ops", []))
+        caught = ", ".join(str(op.get("selected")) if op.get("op") != "relight" else f"relit {op.get('relit')}"
+                           for op in m.get("ops", []))
         gain, _ = changed_region_gains(ch)
         rows.append([d.name, caught, ed.get("psnr_final_tonemapped"), ed.get("psnr_diffuse_tonemapped"),
                      ed.get("psnr_specular_tonemapped"), un.get("psnr_final_tonemapped"),

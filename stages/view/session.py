@@ -3,7 +3,10 @@ No viser here: the GUI (app.py) and the tests drive the same methods.
 
 The session's edit IS an edit spec (models/editing/spec.py) and the scene shown is always
 ``apply_edit(original, spec)``, recomputed on every change, so a saved spec replays through the
-``edit`` stage to the same Gaussians by construction. Selection rules, those of the spec:
+``edit`` stage to the same Gaussians by construction -- but for the light: the live preview does not relight
+(``relight`` traces every Gaussian near the edit, seconds to minutes on a CPU), the stage does, after a move,
+duplicate or delete (models/editing/relight.py: shadows follow what casts them). Add ``relight: false`` to the
+saved edit to replay the preview bit for bit. Selection rules, those of the spec:
 
 - the first selection used becomes the edit's ``select``: evaluated once on the input model, its
   Gaussians followed through moves (a ``duplicate`` leaves the copies out, a ``delete`` empties it);

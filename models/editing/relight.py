@@ -1,0 +1,116 @@
+"""Light that follows an edit: a moved, duplicated or deleted object takes its shadow (and the light it bounces)
+with it.
+
+A Gaussian stores the diffuse RADIANCE the captured scene sent from it: a Lambertian surface of albedo a under
+irradiance E sends L = a E / pi. Move an object and the floor where its shadow lay stays dark, the floor where it
+now stands stays lit: a stored radiance does not follow. ``relight`` scales it by the change of the light,
+
+    L_after = L_before x E_after / E_before        (per RGB channel; the albedo a cancels),
+
+E / pi estimated as the cosine-weighted mean, over the hemisphere of the Gaussian's normal, of the diffuse radiance
+that the first surface along each ray holds (the model's primary segment, ``max_path_length`` 1: lamps and windows
+are emitting Gaussians, a shadow is their occlusion; light that arrives through mirrors is counted in neither
+model): in the unedited model where the Gaussian was, in the edited model where it is. Both estimates use the SAME
+directions (one seeded generator, the same Gaussians in the same order; ``models.pathtrace.irradiance``), so a
+Gaussian whose hemisphere the edit does not reach keeps its radiance exactly, and where it does, the ratio's noise
+is that of the rays that changed.
+
+Which Gaussians:
+- those within ``REACH`` x the edited geometry's size (the diagonal of the box of what the ops moved, created or
+  deleted, before the edit) of that geometry, before or after the edit, and the moved or created ones themselves
+  (lit where they now stand; a duplicate's light before the edit is its original's);
+- not those whose diffuse an op set (``DIFFUSE_OPS``: the user's value, and set_albedo's is lit where it is);
+- not lights: a Gaussian that sends more than ``LIGHT_RATIO`` x the light it receives emits (a Lambertian surface
+  sends at most what it receives, a = L / E_cos <= 1), and emission does not follow the light.
+
+The ratio is clamped to [1 / MAX_RATIO, MAX_RATIO]: a Gaussian the edit uncovers (under where an object stood)
+received almost no light, and what it stores there is a guess. ``auto`` (the edit spec's ``relight``, default)
+relights after the ops that move light (``GEOMETRY_OPS``, ``DIFFUSE_OPS``); roughness and F0 change only the
+specular, which the renders trace anyway.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from models.gaussians import Gaussians
+from models.pathtrace.irradiance import cosine_mean_radiance, ray_offsets
+from models.pathtrace.paths import PathConfig, TraceFn
+
+from .albedo import shading_normals
+
+GEOMETRY_OPS = frozenset({"translate", "rotate", "scale", "duplicate", "delete"})  # auto relights after these
+DIFFUSE_OPS = frozenset({"set_diffuse", "set_albedo", "shift_diffuse_hsv"})
+REACH = 3.0         # relit: Gaussians within this x the edited geometry's size of it
+LIGHT_RATIO = 2.0   # a Gaussian sending more than this x the light it receives is a light: left as it is
+MAX_RATIO = 8.0     # E_after / E_before clamped to [1 / MAX_RATIO, MAX_RATIO]
+SAMPLES = 64        # cosine-distributed rays per Gaussian (each model)
+SEED = 1
+MAX_REGION_POINTS = 50000  # edited points the distance query keeps (a random subset beyond)
+
+
+def _normals_offsets(g: Gaussians, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shading normals and ray offsets of the Gaussians ``rows`` [k] (indices, repeats allowed) of ``g``."""
+    unique, inverse = torch.unique(rows, return_inverse=True)
+    mask = torch.zeros(len(g), dtype=torch.bool)
+    mask[unique] = True  # mask order = sorted unique rows = ``unique``
+    normals = shading_normals(g, mask)
+    offsets = ray_offsets(g, mask, normals)
+    return normals[inverse], offsets[inverse]
+
+
+@torch.no_grad()
+def relight(before: Gaussians, after: Gaussians, source: torch.Tensor, edited_before: torch.Tensor,
+            edited_after: torch.Tensor, fixed: torch.Tensor, trace_fn: TraceFn, path: PathConfig | None = None,
+            samples: int = SAMPLES) -> tuple[Gaussians, dict]:
+    """``after`` with the diffuse radiance of the Gaussians near the edit scaled by E_after / E_before (module doc).
+    ``source`` [M]: the row of ``before`` each row of ``after`` comes from; ``edited_before`` [N] / ``edited_after``
+    [M] bool: what the ops moved, created or deleted, before / after the edit; ``fixed`` [M] bool: rows whose diffuse
+    an op set. ``path``: the model's path settings (its hole fill and diffuse lobe; one segment is traced).
+    Returns (Gaussians, statistics for the edit's report)."""
+    start = time.perf_counter()
+    stats = {"relit": 0, "changed": 0, "lights": 0, "samples": samples}
+    pts = torch.cat([before.means.detach()[edited_before], after.means.detach()[edited_after]]).double().cpu()
+    if len(pts) == 0:
+        return after, stats
+    obj = before.means.detach()[edited_before].double().cpu()
+    obj = obj if len(obj) else pts
+    size = float((obj.amax(0) - obj.amin(0)).norm())
+    reach = max(REACH * size, 1e-6)
+    if len(pts) > MAX_REGION_POINTS:
+        pts = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(SEED))[:MAX_REGION_POINTS]]
+    dist, _ = cKDTree(pts.numpy()).query(after.means.detach().double().cpu().numpy(), k=1,
+                                          distance_upper_bound=reach)
+    region = torch.from_numpy(np.isfinite(dist)) | edited_after.cpu()
+    region &= ~fixed.cpu()
+    rows = region.nonzero().reshape(-1)
+    stats.update(relit=int(len(rows)), reach=round(reach, 4))
+    if len(rows) == 0:
+        return after, stats
+    one = dataclasses.replace(path or PathConfig(), max_path_length=1)
+    src = source.cpu()[rows]
+    n_before, o_before = _normals_offsets(before, src)
+    n_after, o_after = _normals_offsets(after, rows)
+    e_before = cosine_mean_radiance(trace_fn, before, before.means.detach()[src], n_before, o_before, samples, one,
+                                    torch.Generator().manual_seed(SEED))
+    e_after = cosine_mean_radiance(trace_fn, after, after.means.detach()[rows], n_after, o_after, samples, one,
+                                   torch.Generator().manual_seed(SEED))
+    diffuse = after.diffuse.detach()[rows].double().cpu()
+    lit = e_before > 1e-8
+    ratio = torch.where(lit, e_after / e_before.clamp_min(1e-8), torch.ones_like(e_before))
+    ratio = ratio.clamp(1.0 / MAX_RATIO, MAX_RATIO)
+    light = diffuse.amax(-1) > LIGHT_RATIO * e_before.amax(-1)
+    ratio[light] = 1.0
+    stats.update(lights=int(light.sum()), changed=int(((ratio - 1).abs().amax(-1) > 0.05).sum()),
+                 mean_ratio=round(float(ratio[~light].mean()) if bool((~light).any()) else 1.0, 4),
+                 seconds=round(time.perf_counter() - start, 1))
+    new = after.diffuse.detach().clone()
+    new[rows] = (diffuse * ratio).to(new)
+    params = {k: v.detach() for k, v in after.params().items()}
+    params["diffuse"] = new
+    return Gaussians(**params), stats
