@@ -34,7 +34,7 @@ only the specular, which the renders trace anyway.
 One segment, not two: with the first surface's reflection traced too (one GGX sample; longer paths draw their later
 samples per surviving ray, which differ between the two models), the demo's move_ball gained +8.78 dB over the
 unedited render instead of +9.00, zoo_thin's duplicate_chair +5.31 instead of +5.71, zoo_corridor's move_ball +0.72
-instead of +0.55, four more edits within 0.07 dB.
+instead of +0.55, three more edits within 0.07 dB.
 """
 
 from __future__ import annotations
