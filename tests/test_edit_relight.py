@@ -1,6 +1,6 @@
 """The light follows an edit (models/editing/relight.py): a blocker under a ceiling light moved sideways takes its
 shadow along (the floor where it stood brightens, where it now stands darkens), a duplicate casts a second shadow,
-the light itself keeps its radiance, what no moved light reaches keeps its radiance bit for bit (the same
+a deleted one takes it away, the light itself keeps its radiance, what no moved light reaches keeps its radiance bit for bit (the same
 directions in both models), a recoloured object is left as set; the spec's ``relight`` and its errors."""
 
 from __future__ import annotations
@@ -157,3 +157,13 @@ def test_the_spec_names_a_bad_relight(bad):
     with pytest.raises(EditSpecError, match=r"edit 'e'\.relight: must be auto, true or false"):
         parse_edit("e", {"select": {"all": True}, "ops": [{"op": "delete"}], "relight": bad})
     assert parse_edit("e", {"select": {"all": True}, "ops": [{"op": "delete"}]}).relight == "auto"
+
+
+def test_a_deleted_blocker_takes_its_shadow_away(tracer):
+    g = _room((-0.35, 0.1, 0.0))
+    out, report = _apply(g, tracer, [{"op": "delete"}])
+    assert len(out) == len(g) - int(_blocker(g, 0.1).sum()) and report[-1]["op"] == "relight"
+    keep = ~_blocker(g, 0.1)
+    under = _nearest(g, (-0.35, -0.6, 0.0), 1.0)
+    row = int(keep[:under].sum())  # its row once the blocker's rows are gone
+    assert out.diffuse[row, 1] / g.diffuse[under, 1] > 1.3
