@@ -1,7 +1,8 @@
 """The light follows an edit (models/editing/relight.py): a blocker under a ceiling light moved sideways takes its
 shadow along (the floor where it stood brightens, where it now stands darkens), a duplicate casts a second shadow,
-a deleted one takes it away, the light itself keeps its radiance, what no moved light reaches keeps its radiance bit for bit (the same
-directions in both models), a recoloured object is left as set; the spec's ``relight`` and its errors."""
+a deleted one takes it away, the light itself keeps its radiance, what no moved light reaches keeps its radiance
+bit for bit (the same directions in both models), a recoloured object is left as set; the spec's ``relight`` and
+its errors."""
 
 from __future__ import annotations
 
