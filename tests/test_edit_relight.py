@@ -40,7 +40,8 @@ def _surfels(points, normals, size: float, diffuse) -> dict:
     normals = torch.nn.functional.normalize(normals.to(F64), dim=-1)
     return dict(means=points.to(F64), quats=_quat_z_to(normals),
                 log_scales=torch.tensor([math.log(size), math.log(size), math.log(0.004)], dtype=F64).repeat(k, 1),
-                opacity_logits=torch.full((k,), 6.0, dtype=F64), diffuse=torch.as_tensor(diffuse, dtype=F64).expand(k, 3).clone(),
+                opacity_logits=torch.full((k,), 6.0, dtype=F64),
+                diffuse=torch.as_tensor(diffuse, dtype=F64).expand(k, 3).clone(),
                 normals=normals.clone(), roughness=torch.ones(k, dtype=F64), f0=torch.zeros(k, 3, dtype=F64))
 
 
