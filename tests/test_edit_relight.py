@@ -82,8 +82,10 @@ def _blocker(g: Gaussians, y: float) -> torch.Tensor:
 
 
 def _apply(g, tracer, ops, relight="auto", centre=(-0.35, 0.1, 0.0)):
-    spec = parse_edit("e", {"select": {"sphere": {"centre": list(centre), "radius": 0.25}}, "ops": ops,
-                            "relight": relight})
+    """``ops`` on the blocker at ``centre`` (a sphere of radius 0.25 about it, the floor 3 cm below left out)."""
+    floor = {"box": {"min": [-1, -0.61, -1], "max": [1, -0.59, 1]}}
+    spec = parse_edit("e", {"select": {"sphere": {"centre": list(centre), "radius": 0.25}, "exclude": [floor]},
+                            "ops": ops, "relight": relight})
     return apply_edit(g, spec, trace_fn=tracer.trace, path=PathConfig(max_path_length=2))
 
 
@@ -169,3 +171,18 @@ def test_a_deleted_blocker_takes_its_shadow_away(tracer):
     under = _nearest(g, (-0.35, -0.6, 0.0), 1.0)
     row = int(keep[:under].sum())  # its row once the blocker's rows are gone
     assert out.diffuse[row, 1] / g.diffuse[under, 1] > 1.3
+
+
+def test_what_an_object_uncovers_takes_its_neighbours_albedo(tracer):
+    """The floor right under a blocker is lit by almost nothing and holds a guess (here red; in a trained model
+    what no camera saw). Moved away, the blocker uncovers it: its light grows past UNCOVERED x, and it takes the
+    albedo of the floor around it that was lit before (grey), not its guess x the ratio."""
+    g = _room((-0.35, -0.57, 0.0))  # 3 cm above the floor
+    floor = (g.normals[:, 1] - 1).abs() < 1e-3
+    under = floor & ((g.means[:, [0, 2]] - torch.tensor([-0.35, 0.0])).norm(dim=1) < 0.1)
+    g.diffuse[under] = torch.tensor([0.05, 0.0, 0.0])
+    out, report = _apply(g, tracer, [{"op": "translate", "offset": [0.7, 0.0, 0.0]}], centre=(-0.35, -0.57, 0.0))
+    assert report[-1].get("uncovered", 0) >= int(under.sum()) // 2, report
+    rgb = out.diffuse[under]
+    grey = (rgb[:, 1] / rgb[:, 0] > 0.8).float().mean()
+    assert grey > 0.8 and float(rgb[:, 1].median()) > 0.05, rgb  # grey and lit, as the floor beside it

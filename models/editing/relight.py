@@ -21,7 +21,9 @@ Which Gaussians:
   (lit where they now stand; a duplicate's light before the edit is its original's);
 - not those whose diffuse an op set (``DIFFUSE_OPS``: the user's value, and set_albedo's is lit where it is);
 - not lights: a Gaussian that sends more than ``LIGHT_RATIO`` x the light it receives emits (a Lambertian surface
-  sends at most what it receives, a = L / E_cos <= 1), and emission does not follow the light.
+  sends at most what it receives, a = L / E_cos <= 1), and emission does not follow the light; "the light it
+  receives" at least the median over the relit Gaussians, since under an object almost nothing arrives and the
+  guess stored there sends more than that.
 
 The ratio is clamped to [1 / MAX_RATIO, MAX_RATIO]: a Gaussian the edit uncovers (under where an object stood)
 received almost no light, and what it stores there is a guess. ``auto`` (the edit spec's ``relight``, default)
@@ -57,6 +59,8 @@ DIFFUSE_OPS = frozenset({"set_diffuse", "set_albedo", "shift_diffuse_hsv"})
 REACH = 3.0         # relit: Gaussians within this x the edited geometry's size of it
 LIGHT_RATIO = 2.0   # a Gaussian sending more than this x the light it receives is a light: left as it is
 MAX_RATIO = 8.0     # E_after / E_before clamped to [1 / MAX_RATIO, MAX_RATIO]
+UNCOVERED = 2.0     # a Gaussian whose light grows more than this is one the edit uncovered: neighbours' albedo
+NEIGHBOURS = 16
 SAMPLES = 64        # cosine-distributed rays per Gaussian (each model)
 SEED = 1
 MAX_REGION_POINTS = 50000  # edited points the distance query keeps (a random subset beyond)
@@ -70,6 +74,33 @@ def _normals_offsets(g: Gaussians, rows: torch.Tensor) -> tuple[torch.Tensor, to
     normals = shading_normals(g, mask)
     offsets = ray_offsets(g, mask, normals)
     return normals[inverse], offsets[inverse]
+
+
+def _uncovered(points: torch.Tensor, normals: torch.Tensor, diffuse: torch.Tensor, e_before: torch.Tensor,
+               e_after: torch.Tensor, keep: torch.Tensor):
+    """(rows, albedo [k, 3]) of the relit Gaussians the edit uncovered (light up by more than ``UNCOVERED`` x: under
+    where an object stood, a guess no camera checked), their albedo the median albedo (L / E_before) of the
+    ``NEIGHBOURS`` nearest relit Gaussians that were lit before (up by at most ``UNCOVERED`` x) and face the same way
+    (normals within ~25 degrees); None where there are none. ``keep`` [n]: neither (lights, and what the ops moved
+    or created: they carry their own albedo)."""
+    gain = (e_after / e_before.clamp_min(1e-8)).amax(-1)
+    up = (gain > UNCOVERED) & ~keep
+    donors = (gain <= UNCOVERED) & ~keep & (e_before.amax(-1) > 1e-8)
+    if not bool(up.any()) or int(donors.sum()) < NEIGHBOURS:
+        return None
+    d_idx = donors.nonzero().reshape(-1)
+    albedo = diffuse[d_idx] / e_before[d_idx].clamp_min(1e-8)
+    u_idx = up.nonzero().reshape(-1)
+    _, near = cKDTree(points[d_idx].numpy()).query(points[u_idx].numpy(), k=NEIGHBOURS)
+    near = torch.from_numpy(np.asarray(near).reshape(len(u_idx), NEIGHBOURS))
+    facing = (normals[d_idx][near] * normals[u_idx][:, None, :]).sum(-1) > 0.9  # [k, NEIGHBOURS]
+    ok = facing.any(1)
+    if not bool(ok.any()):
+        return None
+    cand = albedo[near]  # [k, NEIGHBOURS, 3]
+    cand = torch.where(facing[..., None], cand, torch.full_like(cand, float("nan")))
+    med = cand.nanmedian(dim=1).values.clamp(0.0, 1.0)
+    return u_idx[ok], med[ok]
 
 
 @torch.no_grad()
@@ -112,13 +143,23 @@ def relight(before: Gaussians, after: Gaussians, source: torch.Tensor, edited_be
     lit = e_before > 1e-8
     ratio = torch.where(lit, e_after / e_before.clamp_min(1e-8), torch.ones_like(e_before))
     ratio = ratio.clamp(1.0 / MAX_RATIO, MAX_RATIO)
-    light = diffuse.amax(-1) > LIGHT_RATIO * e_before.amax(-1)
+    # a light sends more than it receives, and more than the light a typical relit Gaussian receives (where almost
+    # no light arrives, under an object, a guess sends more than that little too)
+    typical = float(e_before.amax(-1).median())
+    light = diffuse.amax(-1) > LIGHT_RATIO * e_before.amax(-1).clamp_min(typical)
     ratio[light] = 1.0
+    out = diffuse * ratio
+    uncovered = _uncovered(after.means.detach()[rows].double().cpu(), n_after.double().cpu(), diffuse, e_before,
+                           e_after, light | edited_after.cpu()[rows])
+    if uncovered is not None:
+        idx, albedo = uncovered
+        out[idx] = albedo * e_after[idx]
+        stats["uncovered"] = int(len(idx))
     stats.update(lights=int(light.sum()), changed=int(((ratio - 1).abs().amax(-1) > 0.05).sum()),
                  mean_ratio=round(float(ratio[~light].mean()) if bool((~light).any()) else 1.0, 4),
                  seconds=round(time.perf_counter() - start, 1))
     new = after.diffuse.detach().clone()
-    new[rows] = (diffuse * ratio).to(new)
+    new[rows] = out.to(new)
     params = {k: v.detach() for k, v in after.params().items()}
     params["diffuse"] = new
     return Gaussians(**params), stats
