@@ -25,8 +25,9 @@ Which Gaussians:
   receives" at least the median over the relit Gaussians, since under an object almost nothing arrives and the
   guess stored there sends more than that.
 
-The ratio is clamped to [1 / MAX_RATIO, MAX_RATIO]: a Gaussian the edit uncovers (under where an object stood)
-received almost no light, and what it stores there is a guess. ``auto`` (the edit spec's ``relight``, default)
+The ratio is clamped to [1 / MAX_RATIO, MAX_RATIO]. A Gaussian the edit uncovers (under where an object stood)
+received almost no light, and what it stores there is a guess: where the light grows more than ``UNCOVERED`` x, the
+Gaussian takes the median albedo (L / E_before) of its lit neighbours facing the same way, x E_after (``_uncovered``). ``auto`` (the edit spec's ``relight``, default)
 relights after the ops that move geometry (``GEOMETRY_OPS``). Not after a recolour (``DIFFUSE_OPS``; ``relight:
 true`` asks for it): the estimate counts the first surface's diffuse only, so a metal made diffuse (zoo_spheres'
 gold_to_paint) starts lighting its neighbours while the light it reflected before is not taken away (that edit's
