@@ -26,13 +26,15 @@ Which Gaussians:
   guess stored there sends more than that.
 
 The ratio is clamped to [1 / MAX_RATIO, MAX_RATIO]. A Gaussian the edit uncovers (under where an object stood)
-received almost no light, and what it stores there is a guess: where the light grows more than ``UNCOVERED`` x, the
-Gaussian takes the median albedo (L / E_before) of its lit neighbours facing the same way, x E_after (``_uncovered``). ``auto`` (the edit spec's ``relight``, default)
-relights after the ops that move geometry (``GEOMETRY_OPS``). Not after a recolour (``DIFFUSE_OPS``; ``relight:
-true`` asks for it): the estimate counts the first surface's diffuse only, so a metal made diffuse (zoo_spheres'
-gold_to_paint) starts lighting its neighbours while the light it reflected before is not taken away (that edit's
-gain +9.23 -> +8.84 dB when relit); a moved metal is black in both models, which cancels. Roughness and F0 change
-only the specular, which the renders trace anyway.
+received almost no light, and what it stores there is a guess: where the light grows more than ``UNCOVERED`` x,
+the Gaussian takes the median albedo (L / E_before) of its lit neighbours facing the same way, x E_after
+(``_uncovered``).
+
+``auto`` (the edit spec's ``relight``, default) relights after the ops that move geometry (``GEOMETRY_OPS``). Not
+after a recolour (``DIFFUSE_OPS``; ``relight: true`` asks for it): the estimate counts the first surface's diffuse
+only, so a metal made diffuse (zoo_spheres' gold_to_paint) starts lighting its neighbours while the light it
+reflected before is not taken away (that edit's gain +9.23 -> +8.84 dB when relit); a moved metal is black in both
+models, which cancels. Roughness and F0 change only the specular, which the renders trace anyway.
 
 One segment, not two: with the first surface's reflection traced too (one GGX sample; longer paths draw their later
 samples per surviving ray, which differ between the two models), the demo's move_ball gained +8.78 dB over the
