@@ -50,6 +50,7 @@ def apply_edit(g: Gaussians, spec: EditSpec, trace_fn: TraceFn | None = None,
             raise EditSpecError(f"edit {spec.name!r} op {i} ({op.kind}): {e}") from None
         if shared is not None and len(g) != before:  # keep the edit's selection aligned with the model
             shared = shared[~mask] if op.kind == "delete" else torch.cat([shared, shared.new_zeros(len(g) - before)])
+        mask = mask.cpu()  # the bookkeeping below lives on the CPU whatever the model's device
         if op.kind in GEOMETRY_OPS:
             edited[source[mask]] = True
         if op.kind == "delete":

@@ -71,11 +71,13 @@ MAX_REGION_POINTS = 50000  # edited points the distance query keeps (a random su
 
 def _normals_offsets(g: Gaussians, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Shading normals and ray offsets of the Gaussians ``rows`` [k] (indices, repeats allowed) of ``g``."""
-    unique, inverse = torch.unique(rows, return_inverse=True)
+    unique, inverse = torch.unique(rows.cpu(), return_inverse=True)
     mask = torch.zeros(len(g), dtype=torch.bool)
     mask[unique] = True  # mask order = sorted unique rows = ``unique``
+    mask = mask.to(g.means.device)
     normals = shading_normals(g, mask)
     offsets = ray_offsets(g, mask, normals)
+    inverse = inverse.to(normals.device)
     return normals[inverse], offsets[inverse]
 
 
@@ -117,19 +119,19 @@ def relight(before: Gaussians, after: Gaussians, source: torch.Tensor, edited_be
     Returns (Gaussians, statistics for the edit's report)."""
     start = time.perf_counter()
     stats = {"relit": 0, "changed": 0, "lights": 0, "samples": samples}
-    pts = torch.cat([before.means.detach()[edited_before], after.means.detach()[edited_after]]).double().cpu()
+    means_before, means_after = before.means.detach().double().cpu(), after.means.detach().double().cpu()
+    edited_before, edited_after, fixed = edited_before.cpu(), edited_after.cpu(), fixed.cpu()
+    pts = torch.cat([means_before[edited_before], means_after[edited_after]])
     if len(pts) == 0:
         return after, stats
-    obj = before.means.detach()[edited_before].double().cpu()
+    obj = means_before[edited_before]
     obj = obj if len(obj) else pts
     size = float((obj.amax(0) - obj.amin(0)).norm())
     reach = max(REACH * size, 1e-6)
     if len(pts) > MAX_REGION_POINTS:
         pts = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(SEED))[:MAX_REGION_POINTS]]
-    dist, _ = cKDTree(pts.numpy()).query(after.means.detach().double().cpu().numpy(), k=1,
-                                          distance_upper_bound=reach)
-    region = torch.from_numpy(np.isfinite(dist)) | edited_after.cpu()
-    region &= ~fixed.cpu()
+    dist, _ = cKDTree(pts.numpy()).query(means_after.numpy(), k=1, distance_upper_bound=reach)
+    region = (torch.from_numpy(np.isfinite(dist)) | edited_after) & ~fixed
     rows = region.nonzero().reshape(-1)
     stats.update(relit=int(len(rows)), reach=round(reach, 4))
     if len(rows) == 0:
@@ -152,8 +154,8 @@ def relight(before: Gaussians, after: Gaussians, source: torch.Tensor, edited_be
     light = diffuse.amax(-1) > LIGHT_RATIO * e_before.amax(-1).clamp_min(typical)
     ratio[light] = 1.0
     out = diffuse * ratio
-    uncovered = _uncovered(after.means.detach()[rows].double().cpu(), n_after.double().cpu(), diffuse, e_before,
-                           e_after, light | edited_after.cpu()[rows])
+    uncovered = _uncovered(means_after[rows], n_after.double().cpu(), diffuse, e_before, e_after,
+                           light | edited_after[rows])
     if uncovered is not None:
         idx, albedo = uncovered
         out[idx] = albedo * e_after[idx]
