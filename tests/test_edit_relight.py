@@ -14,35 +14,10 @@ import torch
 from models.editing import EditSpecError, apply_edit, parse_edit
 from models.gaussians import Gaussians
 from models.pathtrace.paths import PathConfig
-from models.tracer import Tracer, TracerConfig
+from tests.test_edit_albedo import _surfels, tracer  # noqa: F401 (the module-scoped CPU tracer fixture)
 
 F64 = torch.float64
 SHELL = 3000
-
-
-@pytest.fixture(scope="module")
-def tracer():
-    t = Tracer(TracerConfig(num_threads=2), "cpu")
-    yield t
-    t.close()
-
-
-def _quat_z_to(n: torch.Tensor) -> torch.Tensor:
-    z = torch.tensor([0.0, 0.0, 1.0], dtype=F64).expand_as(n)
-    w = 1.0 + (n * z).sum(-1, keepdim=True)
-    q = torch.cat([w, torch.linalg.cross(z, n)], -1)
-    q[w[:, 0] < 1e-9] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=F64)
-    return torch.nn.functional.normalize(q, dim=-1)
-
-
-def _surfels(points, normals, size: float, diffuse) -> dict:
-    k = len(points)
-    normals = torch.nn.functional.normalize(normals.to(F64), dim=-1)
-    return dict(means=points.to(F64), quats=_quat_z_to(normals),
-                log_scales=torch.tensor([math.log(size), math.log(size), math.log(0.004)], dtype=F64).repeat(k, 1),
-                opacity_logits=torch.full((k,), 6.0, dtype=F64),
-                diffuse=torch.as_tensor(diffuse, dtype=F64).expand(k, 3).clone(),
-                normals=normals.clone(), roughness=torch.ones(k, dtype=F64), f0=torch.zeros(k, 3, dtype=F64))
 
 
 def _disk(centre, radius: float, normal, step: float, diffuse) -> dict:
@@ -51,7 +26,7 @@ def _disk(centre, radius: float, normal, step: float, diffuse) -> dict:
     x, z = torch.meshgrid(r, r, indexing="ij")
     keep = x ** 2 + z ** 2 <= radius ** 2
     p = torch.stack([x[keep] + centre[0], torch.full_like(x[keep], centre[1]), z[keep] + centre[2]], -1)
-    return _surfels(p, torch.tensor(normal, dtype=F64).expand(len(p), 3), 0.8 * step, diffuse)
+    return _surfels(p, torch.tensor(normal, dtype=F64).expand(len(p), 3), 0.8 * step, 0.004, diffuse)
 
 
 def _room(blocker_centre) -> Gaussians:
@@ -61,7 +36,7 @@ def _room(blocker_centre) -> Gaussians:
     y = 1 - 2 * i / SHELL
     phi = math.pi * (3 - math.sqrt(5)) * i
     p = torch.stack([(1 - y * y).sqrt() * phi.cos(), y, (1 - y * y).sqrt() * phi.sin()], -1)
-    shell = _surfels(p, -p, 0.8 * math.sqrt(4 * math.pi / SHELL), [0.05, 0.05, 0.05])
+    shell = _surfels(p, -p, 0.8 * math.sqrt(4 * math.pi / SHELL), 0.004, [0.05, 0.05, 0.05])
     shell["diffuse"][p[:, 1] > 0.8] = 4.0
     floor = _disk((0.0, -0.6, 0.0), 0.7, (0.0, 1.0, 0.0), 0.04, [0.2, 0.2, 0.2])
     blocker = _disk(blocker_centre, 0.2, (0.0, -1.0, 0.0), 0.03, [0.02, 0.02, 0.02])

@@ -72,7 +72,7 @@ def apply_edit(g: Gaussians, spec: EditSpec, trace_fn: TraceFn | None = None,
         raise EditSpecError(f"edit {spec.name!r}: relight traces the scene to follow the light: it needs a tracer "
                             "(apply_edit(..., trace_fn=tracer.trace, path=...), as the edit stage passes)")
     if wanted and trace_fn is not None:
-        # an op that only recolours (set_diffuse ...) moves light too: what it recoloured lights its neighbours
+        # with relight: true a recolour (set_diffuse ...) relights too: what it recoloured lights its neighbours
         changed_before = edited | torch.zeros(len(original), dtype=torch.bool).index_fill_(0, source[fixed], True)
         g, stats = relight(original, g, source, changed_before, moved | fixed, fixed, trace_fn, path)
         log.info("edit %r relight: %s", spec.name, stats)

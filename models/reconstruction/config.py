@@ -268,9 +268,10 @@ class ReconstructConfig:
                                "mirrored across the plane normal to the ray: exactly a ball's far-side normal where "
                                "a test view looks through the side no training camera saw at the inside of the "
                                "seen half; zoo_spheres 24.49 -> 25.21 dB rendered, the other zoo rooms within 0.02 "
-                               "on those models and zoo_corridor -0.10 on older ones, the demo unchanged) | flip (-n, a thin sheet's other side: that inside reflects as a "
-                               "concave bowl). Renders only: training flips (trained with mirror the zoo moved "
-                               "-0.12 to +0.46: README); stored with the model (paths.back_normal_from_behind)",
+                               "on those models and zoo_corridor -0.10 on older ones, the demo unchanged) | flip (-n, "
+                               "a thin sheet's other side: that inside reflects as a concave bowl). Renders only: "
+                               "training flips (trained with mirror the zoo moved -0.12 to +0.46: README); stored "
+                               "with the model (paths.back_normal_from_behind)",
                                enum=list(BACK_NORMALS))
     min_throughput: float = setting(0.01, "training only: a reflection path stops where its throughput (max over "
                                     "RGB) is below this; the bounce's value and its gradient are proportional to "

@@ -64,10 +64,10 @@ def unseen_material(gaussians: Gaussians) -> tuple[float, float]:
     """(roughness, F0) of what a fill places where no training view looks (mirror stereo, the reflection fill,
     room closing): the room's matte roughness (``matte_material``) and F0 0. Nothing supervises their material
     (the G-buffer loss needs a view of them, and the trainer holds a mirror fill's material fixed: fill_matte),
-    and the room's median F0 is often its glossy floor's: room closing's walls reflected zoo_thin's window and lamps
-    (specular 28.03 -> 22.88 dB), mirror stereo's plinth in zoo_mirror_only its floor's sheen, where the truth
-    reflects nothing. F0 0 reflects nothing (F90 follows F0); the reflections that show them still train their
-    colour."""
+    and the room's median F0 can be its glossy floor's: room closing's walls reflected zoo_thin's window and lamps
+    (specular 28.03 -> 22.88 dB), where the truth reflects nothing. F0 0 reflects nothing (F90 follows F0); the
+    reflections that show them still train their colour. (On the zoo the median was 0 already: mirror stereo's
+    Gaussians trained the same bits with this.)"""
     return matte_material(gaussians)[0], 0.0
 
 
