@@ -19,7 +19,8 @@ from models.trained import MODEL_FILE, ModelSettings, load_model, read_settings,
 
 TRAIN = {"iterations": 24, "warmup": 12, "rays_per_step": 256, "far_field": "off", "prune_from": 10**6,
          "checkpoint_every": 24, "log_every": 12, "max_path_length": 2, "tracer": {"kernel_p": 2}}
-RENDER = {"spp": 1, "denoise": False, "path_views": 0, "video": False}
+# one primary per pixel: the renders are compared with a direct trace at the pixel centres
+RENDER = {"spp": 1, "antialias": 1, "denoise": False, "path_views": 0, "video": False}
 
 
 @pytest.fixture(scope="module")

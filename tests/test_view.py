@@ -219,7 +219,10 @@ def test_saved_spec_replays_through_the_edit_stage(tmp_path):
     path.write_text(yaml.safe_dump(doc))
     view = View("v0", cam, "test", {"rgb": np.zeros((72, 96, 3), np.float32)})
     write_capture(Capture(views=[view]), tmp_path / "cap")
-    render = json.dumps({"spp": 6, "seed": 3, "max_path_length": 3, "denoise": True, "path_views": 0})
+    # the render settings the viewer records with the edit (one primary per pixel: its frames are not antialiased)
+    assert s.view.record()["render"] == {"spp": 6, "seed": 3, "max_path_length": 3, "antialias": 1, "denoise": True}
+    render = json.dumps({"spp": 6, "seed": 3, "max_path_length": 3, "antialias": 1, "denoise": True,
+                         "path_views": 0})
     proc = subprocess.run([sys.executable, "-m", "stages.edit", "apply", "--edit-file", str(path), "--edit",
                            "viewer_edit", "--model", str(tmp_path / "tiny.ply"), "--capture", str(tmp_path / "cap"),
                            "--out", str(tmp_path / "out"), "--config-json", render],

@@ -42,16 +42,18 @@ class Camera:
         """Camera-to-world rotation. # [3, 3]"""
         return self.c2w[:3, :3].copy()
 
-    def camera_directions(self) -> np.ndarray:
-        """Unnormalised camera-space ray directions (z = -1). # [H, W, 3]"""
-        u = (np.arange(self.width, dtype=np.float64) + 0.5 - self.cx) / self.fl_x
-        v = -(np.arange(self.height, dtype=np.float64) + 0.5 - self.cy) / self.fl_y
+    def camera_directions(self, offset: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
+        """Unnormalised camera-space ray directions (z = -1) through the point ``offset`` (column, row; (0.5,
+        0.5): the centre) of each pixel. # [H, W, 3]"""
+        u = (np.arange(self.width, dtype=np.float64) + offset[0] - self.cx) / self.fl_x
+        v = -(np.arange(self.height, dtype=np.float64) + offset[1] - self.cy) / self.fl_y
         uu, vv = np.meshgrid(u, v)  # [H, W]
         return np.stack([uu, vv, -np.ones_like(uu)], axis=-1)
 
-    def ray_directions(self) -> np.ndarray:
-        """Unit world-space ray directions through pixel centres. # [H, W, 3] float64"""
-        d = self.camera_directions() @ self.c2w[:3, :3].T
+    def ray_directions(self, offset: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
+        """Unit world-space ray directions through pixel centres (or the point ``offset`` of each pixel, as
+        ``camera_directions``). # [H, W, 3] float64"""
+        d = self.camera_directions(offset) @ self.c2w[:3, :3].T
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ def measure_fps(model: str, camera: Camera, max_path_length: int | None = None, 
         tracer.update(gaussians)
         out = {"fps_resolution": [camera.width, camera.height]}
         for key, length in (("fps_1spp", max_path_length), ("fps_primary", 1)):
-            cfg = RenderConfig(spp=1, max_path_length=length, denoise=False, path_views=0, video=False)
+            cfg = RenderConfig(spp=1, antialias=1, max_path_length=length, denoise=False, path_views=0, video=False)
             generator = torch.Generator().manual_seed(0)
             times = []
             for _ in range(repeats + 1):

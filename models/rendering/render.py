@@ -7,6 +7,7 @@ override them for one render (the sweep's render-time knobs, the viewer's path-l
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +51,10 @@ class RenderConfig:
     back_normal: str | None = setting(None, "flip | mirror: the normal a reflection takes where a ray meets the "
                                       "back of what was reconstructed (reconstruct.back_normal); null = the "
                                       "model's (model.yaml)", enum=[*BACK_NORMALS, None])
+    antialias: int = setting(4, "primary rays per pixel, on a stratified n x n grid of sub-pixel points (1 = the "
+                             "pixel centre; 4 = 2 x 2, ...: a perfect square); the reflection samples are shared "
+                             "out among them and every layer is their mean, as the ground truth's box filter",
+                             minimum=1)
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
@@ -70,43 +75,73 @@ class RenderConfig:
         return dataclasses.replace(model, **over)
 
 
+def subpixel_offsets(count: int) -> list[tuple[float, float]]:
+    """The centres of a stratified n x n grid of sub-pixel points (n = sqrt(count)), as (column, row) offsets in
+    the pixel; [(0.5, 0.5)] for 1."""
+    n = math.isqrt(count)
+    if n * n != count:
+        raise ValueError(f"render.antialias={count}: expected a perfect square (1, 4, 9, 16, ...)")
+    return [((i + 0.5) / n, (j + 0.5) / n) for j in range(n) for i in range(n)]
+
+
 @torch.no_grad()
 def render_view(trace_fn, camera: Camera, gaussians: Gaussians, config: RenderConfig, generator: torch.Generator,
                 path: PathConfig) -> dict[str, np.ndarray]:
     """Layers of one view as float32 [H, W, C]: final, diffuse, specular (denoised if on), specular_noisy,
     depth, normal, roughness, f0, transmittance, bounce<i> (mean contribution of reflection segment i).
-    ``path``: the model's path settings (``config`` may override them)."""
+    ``path``: the model's path settings (``config`` may override them). With ``config.antialias`` > 1 each pixel
+    traces that many primary rays (``subpixel_offsets``), the ``spp`` reflection samples are dealt out among them
+    in turn, and each layer is the mean over the pixel's primaries (the specular: over all its samples)."""
     h, w = camera.height, camera.width
-    dirs = torch.tensor(camera.ray_directions().reshape(-1, 3), dtype=torch.float32)
-    origins = torch.tensor(camera.origin, dtype=torch.float32).expand_as(dirs).contiguous()
+    offsets = subpixel_offsets(config.antialias)
     path_cfg = config.path(path)
     length = path_cfg.max_path_length
-    layers: dict[str, list[np.ndarray]] = {}
-    for start in range(0, len(dirs), config.batch_rays):
-        o, d = origins[start:start + config.batch_rays], dirs[start:start + config.batch_rays]
-        primary = trace_fn(o, d, gaussians)
-        spec = torch.zeros((len(d), 3))
-        bounces = [torch.zeros((len(d), 3)) for _ in range(length - 1)]
-        for _ in range(config.spp if length > 1 else 0):
-            out = trace_paths(trace_fn, o, d, gaussians, path_cfg, generator, primary=primary)
-            spec += out.specular
-            for i, b in enumerate(out.bounces):
-                bounces[i] += b
-        n = max(config.spp, 1)
-        opacity = primary.opacity()
-        chunk = {
-            "diffuse": shade_diffuse(primary, d, path_cfg).diffuse,
-            "specular_noisy": spec / n,
-            "depth": primary.depth.reshape(-1, 1),
-            "normal": torch.nn.functional.normalize(primary.normal, dim=-1),
-            "roughness": (primary.roughness.reshape(-1, 1) / opacity).clamp(0, 1),
-            "f0": (primary.f0 / opacity).clamp(0, 1),
-            "transmittance": primary.transmittance.reshape(-1, 1),
-            **{f"bounce{i + 1}": b / n for i, b in enumerate(bounces)},
-        }
-        for k, v in chunk.items():
-            layers.setdefault(k, []).append(v.float().numpy())
-    img = {k: np.concatenate(v).reshape(h, w, -1).astype(np.float32) for k, v in layers.items()}
+    spp = config.spp if length > 1 else 0
+    layers: dict[str, torch.Tensor] = {}
+    for k, offset in enumerate(offsets):
+        share = spp // len(offsets) + (1 if k < spp % len(offsets) else 0)  # this primary's reflection samples
+        dirs = torch.tensor(camera.ray_directions(offset).reshape(-1, 3), dtype=torch.float32)
+        origins = torch.tensor(camera.origin, dtype=torch.float32).expand_as(dirs).contiguous()
+        parts: dict[str, list[torch.Tensor]] = {}
+        for start in range(0, len(dirs), config.batch_rays):
+            o, d = origins[start:start + config.batch_rays], dirs[start:start + config.batch_rays]
+            primary = trace_fn(o, d, gaussians)
+            spec = torch.zeros((len(d), 3))
+            bounces = [torch.zeros((len(d), 3)) for _ in range(length - 1)]
+            for _ in range(share):
+                out = trace_paths(trace_fn, o, d, gaussians, path_cfg, generator, primary=primary)
+                spec += out.specular
+                for i, b in enumerate(out.bounces):
+                    bounces[i] += b
+            opacity = primary.opacity()
+            chunk = {
+                "diffuse": shade_diffuse(primary, d, path_cfg).diffuse,
+                "specular_sum": spec,
+                "depth": primary.depth.reshape(-1, 1),
+                "normal": torch.nn.functional.normalize(primary.normal, dim=-1),
+                "roughness": (primary.roughness.reshape(-1, 1) / opacity).clamp(0, 1),
+                "f0": (primary.f0 / opacity).clamp(0, 1),
+                "transmittance": primary.transmittance.reshape(-1, 1),
+                **{f"bounce_sum{i + 1}": b for i, b in enumerate(bounces)},
+            }
+            for key, v in chunk.items():
+                parts.setdefault(key, []).append(v.float())
+        for key, v in parts.items():
+            v = torch.cat(v)
+            layers[key] = v if key not in layers else layers[key] + v
+    n, m = max(spp, 1), len(offsets)
+    img = {}
+    for key, v in layers.items():
+        if key == "specular_sum":
+            key, v = "specular_noisy", v / n
+        elif key.startswith("bounce_sum"):
+            key, v = "bounce" + key[len("bounce_sum"):], v / n
+        else:
+            v = v / m
+        img[key] = v.numpy().reshape(h, w, -1).astype(np.float32)
+    if m > 1:  # the mean of unit normals is shorter where they disagree: the layer stays unit length
+        norm = np.linalg.norm(img["normal"], axis=-1, keepdims=True)
+        img["normal"] = np.where(norm > 1e-8, img["normal"] / np.maximum(norm, 1e-8), 0.0).astype(np.float32)
     img["specular"] = img["specular_noisy"]
     if config.denoise and length > 1 and config.spp > 0:
         img["specular"] = np.maximum(denoise(img["specular_noisy"], albedo=img["f0"], normal=img["normal"]), 0)

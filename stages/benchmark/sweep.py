@@ -73,7 +73,7 @@ def render_and_evaluate(capture: Capture, model: Path, render_cfg: RenderConfig,
         tracer.update(gaussians)
         generator = torch.Generator().manual_seed(render_cfg.seed)
         if warm_up:
-            render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, denoise=False), generator,
+            render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, antialias=1, denoise=False), generator,
                         settings.path)
         seconds = []
         for view in views:

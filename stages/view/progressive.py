@@ -156,7 +156,7 @@ class ProgressiveView:
         # one ray batch per frame: render_view draws random numbers batch by batch, so spp=N in one call
         # equals N calls at spp=1 only with a single batch
         return RenderConfig(spp=max(self.spp, 1) if s.max_path_length > 1 else 0, max_path_length=s.max_path_length,
-                            denoise=s.denoise_after > 0 and self.spp >= s.denoise_after, seed=s.seed,
+                            antialias=1, denoise=s.denoise_after > 0 and self.spp >= s.denoise_after, seed=s.seed,
                             batch_rays=max(self.batch_rays, n), path_views=0, video=False)
 
     def record(self) -> dict:
@@ -165,7 +165,7 @@ class ProgressiveView:
         return {"camera": {"width": c.width, "height": c.height, "fl_x": c.fl_x, "fl_y": c.fl_y, "cx": c.cx,
                            "cy": c.cy, "transform_matrix": c.c2w.tolist()},
                 "render": {"spp": cfg.spp, "seed": cfg.seed, "max_path_length": cfg.max_path_length,
-                           "denoise": cfg.denoise}}
+                           "antialias": cfg.antialias, "denoise": cfg.denoise}}
 
     def needs_frame(self) -> bool:
         s = self.settings
@@ -192,7 +192,8 @@ class ProgressiveView:
             if self.needs_frame():
                 t0 = time.perf_counter()
                 cfg = RenderConfig(spp=1 if s.max_path_length > 1 else 0, max_path_length=s.max_path_length,
-                                   denoise=False, seed=s.seed, batch_rays=max(self.batch_rays, cam.width * cam.height))
+                                   antialias=1, denoise=False, seed=s.seed,
+                                   batch_rays=max(self.batch_rays, cam.width * cam.height))
                 self._trace.arm()
                 try:
                     img = render_view(self._trace, cam, gaussians, cfg, self._generator, self.path)
