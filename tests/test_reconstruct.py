@@ -73,9 +73,13 @@ def test_training_loss_falls_and_psnr_rises(demo, tmp_path):
     assert all(l["paths_stopped"] >= 0 and 0 <= l["stopped_weight"] < 0.05 for l in reflected)
     assert trainer.settings().path.min_throughput == 0 and trainer.config.min_throughput == 0.01
     assert any("paths stop below throughput 0.01 in training" in d for d in trainer.decisions)
-    # after the last step the back-face fill (tests/test_back_fill.py) says what it added: fixed prior rows
+    # after the last step the sphere snap (tests/test_sphere_snap.py: the demo's mirror ball) and the back-face
+    # fill (tests/test_back_fill.py) say what they added: fixed prior rows, at the end
+    snap = next(d for d in trainer.decisions if "round shiny objects replaced by discs" in d)
+    assert "sphere snap: 1 of 1 round shiny objects" in snap, snap
+    snapped = int(snap.split(" replaced by ")[-1].split(")")[0])
     line = next(d for d in trainer.decisions if "Gaussians behind thin surfaces seen from one side only" in d)
-    added = int(line.split("added ")[1].split()[0])
+    added = int(line.split("added ")[1].split()[0]) + snapped
     assert int(trainer.fixed.sum()) == added and bool(trainer.prior[len(trainer.prior) - added:].all())
     for name, p in trainer.params.items():
         assert torch.isfinite(p).all(), name

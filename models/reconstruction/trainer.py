@@ -45,6 +45,7 @@ from .path_length import carried_throughput, going_on, needed_length
 from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane_fill_gaussians,
                          relight_plane_fill, stereo_on_planes)
 from .sphere_fill import sphere_fill_gaussians
+from .sphere_snap import snap_spheres
 from .back_fill import back_fill
 from .room_closing import close_room, keep_inside, placed_walls
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
@@ -732,6 +733,26 @@ class Trainer:
         self.decisions.append(f"step {self.step}: {message}")
 
     @torch.no_grad()
+    def snap_spheres(self) -> None:
+        """After the last step (``sphere_snap``): each round shiny object's Gaussians replaced by a lattice of discs
+        on the sphere fitted to it (sphere_snap.py), a prior's fixed Gaussians."""
+        src = self._room.src if self._room is not None else pixel_points(self.rays, 400000, seed=self.config.seed)
+        if src is None or len(src["points"]) < 100:
+            self.decisions.append("sphere snap: off, the capture has no depth and normal buffers on enough pixels")
+            return
+        lo, hi = np.quantile(src["points"], [0.005, 0.995], axis=0)
+        keep, lattice, stats = snap_spheres(self.gaussians(), src, self.rays.views, float((hi - lo).max()))
+        if lattice is not None:
+            self._replace(keep=keep.to(self.device), extra=lattice.to(self.device, self.params["means"].dtype),
+                          prior=True, fixed=True)
+        message = (f"sphere snap: {stats['snapped']} of {stats['spheres']} round shiny objects replaced by discs on "
+                   f"their fitted spheres ({stats['removed']} Gaussians replaced by {stats['added']})")
+        log.info("step %d: %s", self.step, message)
+        self.decisions.append(f"step {self.step}: {message}")
+        for note in stats["notes"]:
+            self.decisions.append(f"step {self.step}: {note}")
+
+    @torch.no_grad()
     def fill_backs(self) -> None:
         """After the last step (``back_fill``): the lit layer behind thin surfaces seen from one side only
         (back_fill.py), appended as a prior's fixed Gaussians."""
@@ -1163,6 +1184,9 @@ def train(trainer: Trainer, out_dir: Path, progress: bool = True,
             if on_step:
                 on_step(metrics)
     bar.close()
+    if trainer.step >= cfg.iterations and cfg.sphere_snap:
+        trainer.snap_spheres()
+        metrics["gaussians"] = len(trainer.gaussians())
     if trainer.step >= cfg.iterations and cfg.back_fill:
         trainer.fill_backs()
         metrics["gaussians"] = len(trainer.gaussians())
