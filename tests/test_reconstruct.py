@@ -249,6 +249,41 @@ def test_ray_batches_are_the_rayset_rows():
             assert torch.equal(a.targets[name], b.targets[name]), name
 
 
+def test_jittered_rays_go_through_uniform_random_points_of_their_own_pixels():
+    """With ``jitter`` a batch drawn with a generator goes through a random point of each ray's pixel (projected
+    back: inside that pixel, spread over all of it, centred on it on average); without a generator, or without
+    ``jitter``, through the centres (the plain table's rows, bit for bit); everything but the directions stays."""
+    from models.reconstruction.batches import RayBatcher
+
+    capture, _ = _room()
+    rays = build_rayset(capture, "train")
+    plain, jittered = RayBatcher(rays, torch.device("cpu")), RayBatcher(rays, torch.device("cpu"), jitter=True)
+    index = torch.randint(len(rays), (4000,), generator=torch.Generator().manual_seed(0))
+    centres = plain.sample(index)
+    assert torch.equal(jittered.sample(index).dirs, centres.dirs)
+    assert torch.equal(plain.sample(index, torch.Generator().manual_seed(1)).dirs, centres.dirs)
+    batch = jittered.sample(index, torch.Generator().manual_seed(1))
+    assert torch.allclose(batch.dirs.norm(dim=-1), torch.ones(len(index)), atol=1e-6)
+    assert torch.equal(batch.origins, centres.origins) and torch.equal(batch.mask, centres.mask)
+    for name in batch.targets:
+        assert torch.equal(batch.targets[name], centres.targets[name]), name
+    offsets = []
+    for i, view in enumerate(rays.views):
+        rows = torch.nonzero(batch.view_of_ray == i).reshape(-1)
+        cam = view.camera
+        pixel = index[rows] - int(torch.nonzero(rays.view_of_ray == i)[0])  # row-major pixel number in the view
+        u, v, z = cam.project(cam.origin + batch.dirs[rows].double().numpy())
+        assert (z > 0).all()
+        offsets.append(np.stack([u - (pixel % cam.width).numpy(), v - (pixel // cam.width).numpy()], 1))
+    offsets = np.concatenate(offsets)
+    assert (offsets > -1e-4).all() and (offsets < 1 + 1e-4).all()  # inside the ray's own pixel
+    assert np.abs(offsets.mean(0) - 0.5).max() < 0.02 and (offsets.std(0) > 0.27).all()  # uniform: std 0.289
+    assert (offsets.min(0) < 0.02).all() and (offsets.max(0) > 0.98).all()
+    whole = jittered.view(1, torch.Generator().manual_seed(2))
+    assert not torch.equal(whole.dirs, rays.view_rays(1).dirs) and torch.equal(jittered.view(1).dirs,
+                                                                              rays.view_rays(1).dirs)
+
+
 def test_target_normals_face_the_camera():
     """A capture whose normal buffer faces away from the camera (another tool's convention: outward normals of a
     surface seen from inside) is the same surface: the targets are turned to face the camera, as synth's are."""

@@ -178,6 +178,9 @@ class ReconstructConfig:
                                 "of it covered with Gaussians held fixed (nothing of theirs trains), never pruned "
                                 "for want of weight (sphere_fill.py). Off: zoo_spheres' far-side view gains 2.7 dB "
                                 "(normals 66 -> 8 degrees off), the zoo's rooms move within the draws (README)")
+    jitter: bool = setting(False, "training rays through a uniform random point of their pixel, not its centre "
+                           "(the ground truth's pixel is the mean over its area); the fills and the pruning keep the "
+                           "centres (batches.py)")
     sphere_snap: bool = setting(True, "after the last step: each round shiny object the training views show (a "
                                 "sphere fitted as for sphere_fill) replaced by a fine lattice of discs on the sphere "
                                 "with the material the capture's buffers give it, held fixed; a fit the training "

@@ -106,7 +106,7 @@ class Trainer:
         self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles the step
         # parameters, rays and targets live where the backend traces (a CUDA tracer: on the GPU)
         self.device = getattr(backend, "torch_device", None) or torch.device("cpu")
-        self.batches = RayBatcher(self.rays, self.device)
+        self.batches = RayBatcher(self.rays, self.device, jitter=config.jitter)
         # on a GPU the tracer's per-trace read-backs (replay overflow, zero directions) are settled with the step's
         # one metrics read-back instead (see models/tracer/checks.py): the host queues a step's work while the
         # trace kernels run. A backend without deferred_checks, or False here, checks at every trace.
@@ -446,8 +446,8 @@ class Trainer:
         n = self.config.rays_per_step
         if n <= 0:
             view = int(torch.randint(len(self.rays.views), (1,), generator=self.generator))
-            return self.batches.view(view)
-        return self.batches.sample(torch.randint(len(self.rays), (n,), generator=self.generator))
+            return self.batches.view(view, self.generator)
+        return self.batches.sample(torch.randint(len(self.rays), (n,), generator=self.generator), self.generator)
 
     def losses(self, batch: RaySet, reflections: bool) -> tuple[torch.Tensor, dict]:
         g = self.gaussians()
