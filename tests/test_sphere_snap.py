@@ -142,3 +142,17 @@ def test_the_snapped_ball_renders_the_spheres_normals_and_outline_from_an_unseen
     # the outline: pixels covered but not on the sphere, or on it but not covered, at most a ring one pixel wide
     ring = 2 * math.pi * math.sqrt(hit.sum() / math.pi)
     assert (covered != hit).sum() < ring, ((covered & ~hit).sum(), (hit & ~covered).sum(), ring)
+
+
+def test_a_ball_the_views_see_small_gets_a_coarser_lattice(scene, monkeypatch):
+    """The lattice is no finer than ``PIXEL_SHARE`` of a pixel of the training view that sees the ball largest: with
+    that share raised (as a ball far away or small would have it) the spheres' discs are fewer, spaced by it."""
+    rays, src, model, labels, size = scene
+    pixel = sphere_snap._nearest_footprint(BALL_C, rays.views)
+    nearest = min(np.linalg.norm(BALL_C - v.camera.origin) / v.camera.fl_x for v in rays.views)
+    assert pixel == pytest.approx(nearest)
+    monkeypatch.setattr(sphere_snap, "PIXEL_SHARE", 0.2 * BALL_R / pixel)  # a spacing of 0.2 r
+    _, lattice, stats = snap_spheres(model, src, rays.views, size)
+    assert stats["snapped"] == 1 and len(lattice) == int(math.ceil(4 * math.pi / 0.2 ** 2))
+    width = float(torch.exp(lattice.log_scales[0, 0]))
+    assert width == pytest.approx(0.8 * 0.2 * BALL_R, rel=1e-3)

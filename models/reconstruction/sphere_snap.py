@@ -14,9 +14,10 @@ A test view that walks round the ball sees a reflection of the wrong part of the
 3. The model's Gaussians of the ball go: every one inside 0.9 r of the centre (nothing there can be seen), and
    the shiny ones (mean F0 above half the fit's threshold) within ``BAND`` r of it. What touches the ball (the
    floor it rests on, a plinth) is matte and stays.
-4. In their place, ``4 pi / STEP^2`` discs (Fibonacci lattice, spacing ``STEP`` r; each 0.8 x the spacing
-   across and ``THICKNESS`` x that thick, tangent to the sphere, opacity ``OPACITY``) with the sphere's radial
-   normal and the material of step 2. They are a prior's Gaussians, held fixed.
+4. In their place, ``4 pi / step^2`` discs (Fibonacci lattice, spacing ``step`` r: ``STEP``, or ``PIXEL_SHARE``
+   of a pixel of the training view that sees the ball largest where that is coarser; each 0.8 x the spacing across
+   and ``THICKNESS`` x that thick, tangent to the sphere, ``SINK`` spacings inside it, opacity ``OPACITY``) with
+   the sphere's radial normal and the material of step 2. They are a prior's Gaussians, held fixed.
 5. A fit that the training views contradict is not snapped: when more than ``MAX_EMPTY`` of the lattice,
    pulled in to ``PROBE`` r of the centre, lies where a training view saw empty space
    (``reflection_fill.seen_empty`` at ``EMPTY_MARGIN``), the ball keeps its trained Gaussians and the decisions
@@ -56,6 +57,10 @@ INSIDE = 0.9         # every Gaussian nearer than this x r to the centre goes
 MAX_EMPTY = 0.05     # a fit with more of its lattice seen to be empty than this is not snapped
 EMPTY_MARGIN = 0.8   # ... seen empty: nearer than this x a training pixel's depth, or on a pixel that hits nothing
 PROBE = 0.7          # ... of the lattice pulled in to this x r
+PIXEL_SHARE = 0.4    # the spacing is at least this x the nearest training view's pixel there (a small or far ball
+                     # gets fewer discs: a bead of r 3 cm 2 m from a 128 px wide 60 degree view, ~210 instead of
+                     # 5,027; no zoo or demo ball: their nearest views resolve them finer than 0.05 r at 0.4 px)
+MAX_STEP = 0.5       # ... and at most this x r (50 discs)
 SINK = 0.4           # the lattice lies this x its spacing inside the sphere: a disc reaches ~0.9 x the spacing
                      # from its centre, so discs near a view's silhouette carry the ball's outline past r
 
@@ -85,6 +90,18 @@ def _discs(points: np.ndarray, normals: np.ndarray, h: float, diffuse: np.ndarra
     )
 
 
+def _nearest_footprint(point: np.ndarray, views) -> float:
+    """The width of one pixel at ``point`` [3] in the training view that sees it largest (distance / focal length,
+    over the views whose frame it is in front of and inside); inf when none does."""
+    best = math.inf
+    for view in views:
+        cam = view.camera
+        u, v, z = cam.project(point[None])
+        if z[0] > 1e-9 and 0 <= u[0] < cam.width and 0 <= v[0] < cam.height:
+            best = min(best, float(np.linalg.norm(point - cam.origin)) / max(cam.fl_x, cam.fl_y))
+    return best
+
+
 @torch.no_grad()
 def snap_spheres(gaussians: Gaussians, src: dict | None, views, size: float, min_f0: float = 0.3,
                  ) -> tuple[torch.Tensor, Gaussians | None, dict]:
@@ -112,8 +129,10 @@ def snap_spheres(gaussians: Gaussians, src: dict | None, views, size: float, min
         where = (f"the sphere of radius {r / size:.3f} x the room size at "
                  f"{np.round((c - lo) / np.maximum(hi - lo, 1e-12), 2).tolist()} of its box")
         log.info("sphere snap: sphere r %.4f at %s", r, np.round(c, 4).tolist())
-        dirs = fibonacci_sphere(int(math.ceil(4 * math.pi / STEP ** 2)))
-        lattice = c + r * (1.0 - SINK * STEP) * dirs
+        pixel = _nearest_footprint(c, views)
+        step = min(max(STEP, PIXEL_SHARE * pixel / r), MAX_STEP) if math.isfinite(pixel) else STEP  # x r
+        dirs = fibonacci_sphere(int(math.ceil(4 * math.pi / step ** 2)))
+        lattice = c + r * (1.0 - SINK * step) * dirs
         empty = seen_empty(torch.from_numpy(c + PROBE * r * dirs), views, margin=EMPTY_MARGIN).numpy()
         if empty.mean() > MAX_EMPTY:
             stats["notes"].append(f"sphere snap: {where} left as trained: {100 * empty.mean():.0f} % of its lattice "
@@ -126,7 +145,7 @@ def snap_spheres(gaussians: Gaussians, src: dict | None, views, size: float, min
         f0 = np.median(src["f0"][members], axis=0)
         roughness = float(np.median(src["roughness"][members]))
         keep &= torch.from_numpy(~ball)
-        parts.append(_discs(lattice, dirs, STEP * r, diffuse, roughness, f0, dtype))
+        parts.append(_discs(lattice, dirs, step * r, diffuse, roughness, f0, dtype))
         stats["snapped"] += 1
         stats["notes"].append(f"sphere snap: {where}: {int(ball.sum())} Gaussians replaced by {len(lattice)} discs (F0 "
                               f"{np.round(f0, 2).tolist()}, roughness {roughness:.2f})")
