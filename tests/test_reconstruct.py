@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -83,6 +84,24 @@ def test_training_loss_falls_and_psnr_rises(demo, tmp_path):
     assert int(trainer.fixed.sum()) == added and bool(trainer.prior[len(trainer.prior) - added:].all())
     for name, p in trainer.params.items():
         assert torch.isfinite(p).all(), name
+
+
+def test_the_sphere_snap_switched_off_resumes_the_finished_run(demo, tmp_path):
+    """The sphere snap acts only after the last step: a finished run's checkpoint resumes a run without it (no
+    other config), which redoes only what follows the steps and writes the model without the snap."""
+    capture, init = demo
+    cfg = dict(SMALL, iterations=40, warmup=10, prune_from=20, prune_every=10, checkpoint_every=20)
+    snapped = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+    train(snapped, tmp_path / "a", progress=False)
+    state = snapped.read_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")
+    plain = Trainer(capture, init, ReconstructConfig.from_dict(dict(cfg, sphere_snap=False)), tracer())
+    assert plain.resume_mismatch(state) is None
+    plain.load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")
+    train(plain, tmp_path / "a", progress=False)
+    snap = next(d for d in snapped.decisions if "round shiny objects replaced by discs" in d)
+    removed, added = (int(x) for x in re.search(r"\((\d+) Gaussians replaced by (\d+)\)", snap).groups())
+    assert not any("sphere snap" in d for d in plain.decisions)
+    assert len(snapped.gaussians()) - len(plain.gaussians()) == added - removed
 
 
 def test_resume_is_exact(demo, tmp_path):

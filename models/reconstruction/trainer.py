@@ -1135,8 +1135,9 @@ def scene_size(gaussians: Gaussians) -> float:
 
 
 PATH_DECISION_RAYS = 8192  # training rays traced to decide the path length (_decide_path_length)
-# how a run reports, and what only its model.yaml says (the hole fill: decided after training), not what it trains
-RESUME_IGNORED = ("log_every", "checkpoint_every", "hole_fill")
+# how a run reports, what only its model.yaml says (the hole fill: decided after training) and what acts only after
+# the last step on what the steps trained (the sphere snap), not what the steps train
+RESUME_IGNORED = ("log_every", "checkpoint_every", "hole_fill", "sphere_snap")
 
 
 def _flat_differences(a: dict, b: dict, prefix: str = "") -> list[tuple[str, object, object]]:
