@@ -58,6 +58,7 @@ def test_quick_sweep_on_tiny_demo(tiny_demo, tmp_path):
     # fewer Gaussians from a coarser voxel grid; the primary segment (diffuse) is deterministic, so spp and the
     # denoiser (which acts on the specular layer only) leave diffuse PSNR unchanged
     assert by["voxel x2"]["gaussians"] < by["base"]["gaussians"]
+    assert by["antialias 1"]["render_s_per_view"] > 0  # one primary per pixel against the base's 2 x 2
     assert {by[n]["psnr_diffuse"] for n in ("spp 1", "spp 1 +dn", "spp 4", "spp 4 +dn", "render path 1")} == \
         {by["base"]["psnr_diffuse"]}
     rec = {(r["group"], r["role"]): r for r in result["recommended"]}

@@ -7,7 +7,7 @@ Two kinds of points:
   threshold); each is saved as a model folder (gaussians.ply + model.yaml) and scored by rendering the test
   views at the base render settings with the model's own settings, as the render stage would;
 * render points reuse the base model and change only render-time knobs (samples per pixel with and
-  without the denoiser, max path length, replay k, transmittance threshold).
+  without the denoiser, max path length, replay k, transmittance threshold, primary rays per pixel).
 
 Every point records wall time (training; rendering per test view), PSNR per layer on the test views
 (linear, as ``evaluate``), and the Gaussian count. The Pareto front (no other point both faster and
@@ -51,13 +51,14 @@ class SweepGrid:
     spp: list[int] = field(default_factory=lambda: [1, 4, 16, 64, 128])
     render_k: list[int] = field(default_factory=lambda: [4, 8, 32])
     render_transmittance: list[float] = field(default_factory=lambda: [0.001, 0.05, 0.1])
+    antialias: list[int] = field(default_factory=lambda: [1, 16])  # primary rays per pixel (render.antialias)
     test_views: int = 2  # test views scored per point (render time is per view)
 
     @classmethod
     def quick(cls) -> "SweepGrid":
         """A smoke-test grid (CI): one value per knob."""
         return cls(path_length=[1], train_downsample=[2], voxel_scale=[2.0], kernel_p=[], train_transmittance=[],
-                   spp=[1, 4], render_k=[8], render_transmittance=[0.05], test_views=1)
+                   spp=[1, 4], render_k=[8], render_transmittance=[0.05], antialias=[1], test_views=1)
 
 
 def render_and_evaluate(capture: Capture, model: Path, render_cfg: RenderConfig, device: str, test_views: int | None,
@@ -73,8 +74,8 @@ def render_and_evaluate(capture: Capture, model: Path, render_cfg: RenderConfig,
         tracer.update(gaussians)
         generator = torch.Generator().manual_seed(render_cfg.seed)
         if warm_up:
-            render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, antialias=1, denoise=False), generator,
-                        settings.path)
+            render_view(tracer.trace, views[0].camera, gaussians, RenderConfig(spp=1, antialias=1, denoise=False),
+                        generator, settings.path)
         seconds = []
         for view in views:
             t0 = time.perf_counter()
@@ -135,6 +136,7 @@ def render_points(grid: SweepGrid) -> list[tuple[str, dict, dict]]:
     points += [(f"render path {n}", {"max_path_length": n}, {}) for n in grid.path_length]
     points += [(f"k {k}", {}, {"k": k}) for k in grid.render_k]
     points += [(f"render T {t:g}", {}, {"transmittance_threshold": t}) for t in grid.render_transmittance]
+    points += [(f"antialias {a}", {"antialias": a}, {}) for a in grid.antialias]
     return points
 
 
