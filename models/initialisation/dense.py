@@ -73,6 +73,15 @@ class InitConfig:
         return from_dict(cls, d, "init")
 
 
+def quats_z_to(normals: np.ndarray) -> np.ndarray:
+    """[n, 4] unit quaternions (w, x, y, z) of the rotations taking e_z to the unit ``normals`` [n, 3] (a disc's
+    thin local z axis along its normal): axis e_z x n, (1 + n_z, -n_y, n_x, 0) normalised; n = -e_z (w = 0) turns
+    about x."""
+    q = np.stack([1.0 + normals[:, 2], -normals[:, 1], normals[:, 0], np.zeros(len(normals))], 1)
+    q[q[:, 0] < 1e-6] = [0.0, 1.0, 0.0, 0.0]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
 def _sample_view(view: View, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """World points [M, 3] and diffuse colours + normals [M, 6] of one view on a low-resolution pixel grid (normals
     0 without a normal buffer)."""
@@ -191,12 +200,7 @@ def gaussians_from_points(means: np.ndarray, diffuse: np.ndarray, config: InitCo
     if normals is not None and config.flatten < 1.0:
         length = np.linalg.norm(normals, axis=1)
         flat = length >= 0.9
-        nz = normals[flat] / length[flat, None]
-        # the rotation taking e_z to the normal: axis e_z x n, (w, x, y, z) = (1 + n_z, -n_y, n_x, 0) normalised;
-        # n = -e_z (w = 0) turns about x
-        q = np.stack([1.0 + nz[:, 2], -nz[:, 1], nz[:, 0], np.zeros(len(nz))], 1)
-        q[q[:, 0] < 1e-6] = [0.0, 1.0, 0.0, 0.0]
-        quats[flat] = q / np.linalg.norm(q, axis=1, keepdims=True)
+        quats[flat] = quats_z_to(normals[flat] / length[flat, None])
         log_scales[flat, 2] += np.log(config.flatten)
     gaussians = Gaussians(
         means=torch.tensor(means, **f32),

@@ -43,6 +43,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
+from models.initialisation.dense import quats_z_to
 
 from .reflection_fill import seen_empty
 from .sphere_fill import fibonacci_sphere, find_spheres
@@ -70,11 +71,7 @@ def _discs(points: np.ndarray, normals: np.ndarray, h: float, diffuse: np.ndarra
     """Discs at ``points`` [n, 3] tangent to the planes of ``normals`` [n, 3] (unit): local z along the normal,
     0.8 h across, ``THICKNESS`` x that thick, opacity ``OPACITY``, one material for all."""
     n = len(points)
-    nz = normals
-    # the rotation taking e_z to the normal (as the init's discs): (w, x, y, z) = (1 + n_z, -n_y, n_x, 0)
-    q = np.stack([1.0 + nz[:, 2], -nz[:, 1], nz[:, 0], np.zeros(n)], 1)
-    q[q[:, 0] < 1e-6] = [0.0, 1.0, 0.0, 0.0]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q = quats_z_to(normals)  # as the init's discs
     scale = np.full((n, 3), math.log(0.8 * h))
     scale[:, 2] += math.log(THICKNESS)
     f = dict(dtype=dtype)
