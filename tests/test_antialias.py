@@ -63,6 +63,9 @@ def test_subpixel_offsets_are_a_stratified_grid_and_refuse_other_counts():
     assert len(set(subpixel_offsets(9))) == 9
     with pytest.raises(ValueError, match="render.antialias=3"):
         subpixel_offsets(3)
+    # the config refuses it before any work, naming the key and the values it takes
+    with pytest.raises(ValueError, match=r"render.antialias must be one of 1, 4, 9, 16, .* got 3"):
+        RenderConfig.from_dict({"antialias": 3})
 
 
 @pytest.mark.parametrize("length", [1, 3])

@@ -54,7 +54,7 @@ class RenderConfig:
     antialias: int = setting(4, "primary rays per pixel, on a stratified n x n grid of sub-pixel points (1 = the "
                              "pixel centre; 4 = 2 x 2, ...: a perfect square); the reflection samples are shared "
                              "out among them and every layer is their mean, as the ground truth's box filter",
-                             minimum=1)
+                             enum=[n * n for n in range(1, 9)])
     denoise: bool = setting(True, "Intel Open Image Denoise on the specular layer (albedo = F0, normal guides)")
     path_views: int = setting(24, "novel camera path: views interpolated through the test cameras (0 = none)",
                               minimum=0)
