@@ -141,6 +141,12 @@ def find_spheres(src: dict, link: float, size: float, min_f0: float = 0.3,
     return kept, notes
 
 
+def point_spacing(points: np.ndarray) -> float:
+    """The median distance from a point of ``points`` [n, 3] (a subset of at most ~20,000) to its nearest other
+    point: the pixel points' spacing, whose 3x links the pieces ``find_spheres`` groups."""
+    return float(np.median(cKDTree(points).query(points[:: max(1, len(points) // 20000)], k=2)[0][:, 1]))
+
+
 def fibonacci_sphere(count: int) -> np.ndarray:
     """[count, 3] unit vectors spread evenly over the sphere."""
     i = np.arange(count) + 0.5
@@ -161,8 +167,7 @@ def sphere_fill_gaussians(src: dict | None, rays, size: float, opacity: float = 
         return None, stats
     pts = src["points"]
     tree = cKDTree(pts)
-    spacing = float(np.median(tree.query(pts[:: max(1, len(pts) // 20000)], k=2)[0][:, 1]))
-    spheres, notes = find_spheres(src, link=3.0 * spacing, size=size, min_f0=min_f0)
+    spheres, notes = find_spheres(src, link=3.0 * point_spacing(pts), size=size, min_f0=min_f0)
     stats["notes"] = notes
     parts = []
     for s in spheres:

@@ -40,13 +40,12 @@ import math
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
 from models.initialisation.dense import quats_z_to
 
 from .reflection_fill import seen_empty
-from .sphere_fill import fibonacci_sphere, find_spheres
+from .sphere_fill import fibonacci_sphere, find_spheres, point_spacing
 
 log = logging.getLogger(__name__)
 
@@ -112,8 +111,7 @@ def snap_spheres(gaussians: Gaussians, src: dict | None, views, size: float, min
     if src is None or len(src["points"]) < 100 or n == 0:
         return keep, None, stats
     pts = src["points"]
-    spacing = float(np.median(cKDTree(pts).query(pts[:: max(1, len(pts) // 20000)], k=2)[0][:, 1]))
-    spheres, _ = find_spheres(src, link=3.0 * spacing, size=size, min_f0=min_f0)
+    spheres, _ = find_spheres(src, link=3.0 * point_spacing(pts), size=size, min_f0=min_f0)
     stats["spheres"] = len(spheres)
     means = gaussians.means.detach().double().cpu().numpy()
     shiny = gaussians.f0.detach().mean(-1).cpu().numpy() > 0.5 * min_f0

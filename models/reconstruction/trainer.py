@@ -204,14 +204,22 @@ class Trainer:
         fill = Gaussians.cat(fills).to(init.device, init.dtype)
         return Gaussians.cat([init.to(), fill]), len(fill), 0 if spheres is None else len(spheres)
 
-    def _spheres(self) -> Gaussians | None:
-        """The sphere completion's Gaussians (sphere_fill.py), from the plane fill's pixel points when it ran."""
+    def _shiny_points(self, what: str) -> tuple[dict, float] | None:
+        """The training pixels' points (the plane fill's when it ran) and the room's size (their 0.5-99.5 % box) for
+        the sphere fits, or None (logged as ``what`` being off) without depth and normals on enough pixels."""
         src = self._room.src if self._room is not None else pixel_points(self.rays, 400000, seed=self.config.seed)
         if src is None or len(src["points"]) < 100:
-            self.decisions.append("sphere fill: off, the capture has no depth and normal buffers on enough pixels")
+            self.decisions.append(f"{what}: off, the capture has no depth and normal buffers on enough pixels")
             return None
         lo, hi = np.quantile(src["points"], [0.005, 0.995], axis=0)
-        fill, stats = sphere_fill_gaussians(src, self.rays, float((hi - lo).max()))
+        return src, float((hi - lo).max())
+
+    def _spheres(self) -> Gaussians | None:
+        """The sphere completion's Gaussians (sphere_fill.py), from the plane fill's pixel points when it ran."""
+        found = self._shiny_points("sphere fill")
+        if found is None:
+            return None
+        fill, stats = sphere_fill_gaussians(found[0], self.rays, found[1])
         self.decisions.append(f"sphere fill: {stats['added']} Gaussians on the unseen parts of {stats['spheres']} "
                               "round shiny objects")
         self.decisions.extend(f"sphere fill: {note}" for note in stats["notes"])
@@ -736,12 +744,10 @@ class Trainer:
     def snap_spheres(self) -> None:
         """After the last step (``sphere_snap``): each round shiny object's Gaussians replaced by a lattice of discs
         on the sphere fitted to it (sphere_snap.py), a prior's fixed Gaussians."""
-        src = self._room.src if self._room is not None else pixel_points(self.rays, 400000, seed=self.config.seed)
-        if src is None or len(src["points"]) < 100:
-            self.decisions.append("sphere snap: off, the capture has no depth and normal buffers on enough pixels")
+        found = self._shiny_points("sphere snap")
+        if found is None:
             return
-        lo, hi = np.quantile(src["points"], [0.005, 0.995], axis=0)
-        keep, lattice, stats = snap_spheres(self.gaussians(), src, self.rays.views, float((hi - lo).max()))
+        keep, lattice, stats = snap_spheres(self.gaussians(), found[0], self.rays.views, found[1])
         if lattice is not None:
             self._replace(keep=keep.to(self.device), extra=lattice.to(self.device, self.params["means"].dtype),
                           prior=True, fixed=True)
