@@ -11,7 +11,7 @@ from models.gaussians import Gaussians
 from models.reconstruction.data import build_rayset
 from models.reconstruction.plane_fill import extend_plane_fill, pixel_points, plane_fill_gaussians
 from models.reconstruction.reflection_fill import shiny
-from models.reconstruction.room_closing import close_room
+from models.reconstruction.room_closing import close_behind_lights, close_room
 from models.synth import render_capture
 from models.tracer import Tracer, TracerConfig
 from stages.config import load_config
@@ -128,6 +128,40 @@ def test_a_side_a_sweep_cannot_decide_says_why(spheres, monkeypatch):
         # one for the sharp pass, one for the glossy pass that then sweeps the sides still open
         assert len(notes) == 2 and "no clear minimum" in notes[0] and "not placed" in notes[0], info
         assert "glossy reflections" in notes[1], info
+
+
+def test_an_open_side_is_closed_behind_the_lights_found_on_it(spheres, monkeypatch):
+    """``close_behind_lights``: with the sweep unable to decide (every side left open), a side with at least
+    ``MIN_LIGHTS`` of the highlight fill's emitters beyond the box gets a wall one grid spacing behind them, matte,
+    facing into the room, joining the room's bounds; a side without lights stays open, and too few lights place
+    nothing."""
+    import models.reconstruction.room_closing as closing
+
+    tracer, seen = Tracer(TracerConfig(num_threads=2)), _seen_surfaces(spheres)
+    monkeypatch.setattr(closing, "MAX_RATIO", 0.0)  # the sweep closes nothing
+    _, stats = plane_fill_gaussians(spheres)
+    room = stats["room"]
+    walls, _, _ = close_room(room, spheres, tracer.trace, seen, count=8000)
+    assert walls is None
+    n_bound = len(room.bound)
+    rng = np.random.default_rng(0)
+    lights = np.stack([rng.uniform(-0.5, 0.5, 60), np.full(60, 2.45), rng.uniform(-0.5, 0.5, 60)], 1)
+    few = close_behind_lights(room, spheres, tracer.trace, seen, lights[:closing.MIN_LIGHTS - 1], count=8000)
+    assert few[0] is None and few[1] is None and len(room.bound) == n_bound
+    inside = close_behind_lights(room, spheres, tracer.trace, seen, lights - [0.0, 1.5, 0.0], count=8000)
+    assert inside[0] is None and len(room.bound) == n_bound  # lights inside the box close nothing
+    wall, points, info = close_behind_lights(room, spheres, tracer.trace, seen, lights, count=8000)
+    assert wall is not None and info["added"] == len(wall.means) <= 8000, info
+    assert "+y at" in info["walls"] and "+z" not in info["walls"], info
+    (n, d, inl), = room.bound[n_bound:]
+    assert len(inl) == 0 and int(np.argmax(np.abs(n))) == 1 and n[1] < 0  # facing back down into the room
+    out, s = -np.asarray(n), -float(d)  # the wall: out . p = s, out pointing out of the room
+    assert abs(s - (float((lights @ out).max()) + room.h)) < 1e-9 and abs(s / out[1] - 2.49) < 0.02
+    off = wall.means.double() @ torch.from_numpy(out) - s
+    assert float(off.abs().max()) < 1e-3 and len(points) == len(wall.means)
+    assert torch.allclose(wall.normals, torch.from_numpy(-out).float().expand_as(wall.normals), atol=1e-3)
+    assert float(wall.f0.max()) < 0.3 and float(wall.roughness.min()) > 0.3
+    assert bool(torch.isfinite(wall.diffuse).all()) and bool((wall.diffuse >= 0).all())
 
 
 def test_lights_placed_beyond_a_wall_move_in_front_of_it(spheres):

@@ -209,6 +209,13 @@ class ReconstructConfig:
                                "the cameras, a ceiling above every frame), placed at the end of warm-up where sharp "
                                "reflections, curved mirrors too, agree on them (room_closing.py); a side whose "
                                "reflections agree best far away stays open")
+    close_behind_lights: bool = setting(True, "with close_room and the highlight fill: a side the sweep leaves open "
+                                        "is closed one grid spacing behind the emitters the highlight fill put on "
+                                        "it, when its box scale is a minimum inside its search (a light hangs on "
+                                        "a wall or a ceiling), and the lights are found again, those beyond the "
+                                        "new wall moved onto it (room_closing.close_behind_lights). Held-out "
+                                        "probe_9164 (a flat ceiling seen only in mirror cubes) 28.52 -> 30.61, "
+                                        "probe_9256 29.91 -> 29.78; no zoo room or the demo takes it (README)")
     close_room_refine: bool = setting(True, "room closing refines each wall's offset by a parabola fitted to a fine "
                                       "sweep round the coarse one's minimum (whose steps are 14 %: ~10 cm at a "
                                       "ceiling): zoo_spheres' ceiling 0.12 -> 0.05 m low, the demo's 0.11 -> 0.03. "

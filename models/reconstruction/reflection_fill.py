@@ -337,6 +337,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     put it. ``snapped`` in the statistics counts them (``reconstruct.highlight_to_walls``), ``snapped_rows`` [n]
     (bool, None without emitters) marks them among the returned Gaussians."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
+             "box_scale_inside": False,
              "on_fill": 0, "on_fill_added": 0, "snapped": 0, "snapped_rows": None,
              "notes": []}
     t = rays.targets
@@ -394,6 +395,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
         scale_box, scales, _, notes = sweep_box_scale(x, r, bright, lo, hi)
         stats["notes"] += notes
         stats["box_scale"], stats["box_scale_range"] = scale_box, f"{scales[0]:.1f}-{scales[-1]:.2f}"
+        stats["box_scale_inside"] = scales[0] < scale_box < scales[-1]  # a minimum, not an edge of the search
         centre, half = (lo + hi) / 2, (hi - lo) / 2
         lo, hi = centre - scale_box * half, centre + scale_box * half
         x, r, radiance = x[keep], r[keep], radiance[keep]

@@ -44,7 +44,12 @@ bounds (the plane fill's spacing, coarser to fit the budget), not where a traini
 (``unseen_material``: the roughness of the room's other matte Gaussians and F0 0; a guessed F0, never trained,
 lit zoo_thin's closed ceiling with reflections of its window), its colour the median radiance of the 16
 nearest landed reflections that show no light (lights are the highlight fill's; training refines the colour); the
-points are returned so that the plane fill reaches the new wall (``extend_plane_fill``)."""
+points are returned so that the plane fill reaches the new wall (``extend_plane_fill``).
+
+A side both passes leave open can still be closed behind the lights (``close_behind_lights``, after the highlight
+fill): a flat-coloured ceiling that only mirror cubes show agrees at every offset (held-out probe_9164: the best
+scored 0.72 of the far end's), but the ceiling lights those cubes reflect are found where their reflections meet,
+and a light hangs on a wall or a ceiling."""
 
 from __future__ import annotations
 
@@ -277,6 +282,20 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
     if not walls:
         return None, None, stats
     stats["walls"] = "; ".join(described)
+    fill, points = _wall_gaussians(walls, room, rays, corners, gaussians, count, opacity, dtype)
+    if fill is None:
+        return None, None, stats
+    stats["added"] = len(fill)
+    return fill, points, stats
+
+
+def _wall_gaussians(walls: list, room: Room, rays, corners: np.ndarray, gaussians: Gaussians, count: int,
+                    opacity: float, dtype) -> tuple[Gaussians | None, np.ndarray | None]:
+    """The Gaussians of the walls placed (``walls``: (n, s, landed points, their colours) each, already among
+    ``room.bound``): one per grid point of each wall inside the room's box carried out to the walls (``corners``)
+    and the other bounds, not where a training view sees empty space, matte (``unseen_material``), coloured by the
+    median radiance of the 16 nearest landed reflections; the grid coarsens from ``room.h`` to fit ``count``.
+    Returns (Gaussians, their centres [M, 3]) or (None, None)."""
     bounds = [(n, dd) for n, dd, _ in room.bound]
     h = room.h
     for _ in range(4):  # the grid coarsens until the walls fit the budget
@@ -305,10 +324,85 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
         parts.append(_surfels(g, -n, h, opacity, colour, rough, f0, dtype))
         all_points.append(g)
     if not parts:
+        return None, None
+    return Gaussians.cat(parts), np.concatenate(all_points)
+
+
+MIN_LIGHTS = 20  # close_behind_lights: emitters of the highlight fill on an open side needed to place a wall there
+
+
+@torch.no_grad()
+def close_behind_lights(room: Room | None, rays, trace_fn, gaussians: Gaussians, lights: np.ndarray,
+                        count: int = 20000, opacity: float = 0.9, known: np.ndarray | None = None, seed: int = 0,
+                        dtype=torch.float32) -> tuple[Gaussians | None, np.ndarray | None, dict]:
+    """Walls just behind the lights on the sides ``close_room`` left open. A light is mounted on a wall or a
+    ceiling: where the highlight fill (reflection_fill.highlight_fill_gaussians) found the lights the cameras see
+    only in mirrors (``lights`` [K, 3]: its emitters, on the box it scaled until their reflections met), a side of
+    the room that the sweep could not close -- a flat-coloured ceiling, shown only by mirror cubes' tops: every
+    offset agrees as well as any other -- is closed one grid spacing behind the emitters on it (at least
+    ``MIN_LIGHTS`` of them within 3 tolerances of their farthest on that side, beyond the box). Without it that
+    ceiling was the far field and the cubes' tops reflected its blur (held-out probe_9164, README). The wall is
+    ``close_room``'s (matte, unseen material), coloured by the ordinary open reflections (sharp, else glossy) that
+    land on it. ``known``: as ``close_room``'s. Call it only with a box scale found inside its search (a light on
+    the search's edge sits on the box for want of a better place, not where it is). Returns (Gaussians or None, the
+    walls' points or None, {"walls": description, "added", "notes"})."""
+    stats = {"walls": "none", "added": 0, "notes": []}
+    t = rays.targets
+    if (room is None or lights is None or len(lights) < MIN_LIGHTS
+            or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth"))):
         return None, None, stats
-    fill = Gaussians.cat(parts)
+    lights = np.asarray(lights, dtype=np.float64)
+    corners = box_corners(room.lo, room.hi)
+    sides = open_sides(room)
+    if known is not None and len(known) >= 10:
+        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
+    walls, described, refl = [], [], {}
+    for n in sides:
+        axis = int(np.argmax(np.abs(n)))
+        where = ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
+        face = float((corners @ n).max())
+        proj = lights @ n
+        on = proj >= proj.max() - 3 * room.tol
+        if on.sum() < MIN_LIGHTS or proj.max() <= face + room.tol:
+            continue
+        s = float(proj[on].max()) + room.h
+        bounds = [(m, dd) for m, dd, _ in room.bound]
+        points = colours = None
+        for glossy in (False, True):
+            if glossy not in refl:
+                refl[glossy] = _reflections(rays, trace_fn, gaussians, glossy, seed)
+            r = refl[glossy]
+            if r is None or "x" not in r:
+                continue
+            going = r["r"] @ n > 0.05
+            _, _, landed = _score(r["x"][going], r["r"][going], r["lum"][going], r["view"][going], n, s, bounds,
+                                  room.tol, float((room.hi - room.lo).max()) / CELLS)
+            tt = (s - r["x"][going] @ n) / (r["r"][going] @ n)
+            hit = r["x"][going] + tt[:, None] * r["r"][going]
+            keep = landed & r["ordinary"][going]
+            if keep.sum() >= 16:
+                points, colours = hit[keep], r["radiance"][going][keep]
+                break
+            if landed.sum() >= 16 and points is None:
+                points, colours = hit[landed], r["radiance"][going][landed]
+        if points is None:
+            stats["notes"].append(f"room closing behind the lights: the open side {where}: {int(on.sum())} "
+                                  "emitters on it, but too few reflections land there to colour a wall: not placed")
+            continue
+        walls.append((n, s, points, colours))
+        room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))
+        grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])
+        corners = box_corners(grown.min(0), grown.max(0))
+        described.append(f"{where} at {s - face:.2f} beyond the box, behind {int(on.sum())} of the highlight "
+                         f"fill's emitters ({len(points)} reflections colour it)")
+    if not walls:
+        return None, None, stats
+    stats["walls"] = "; ".join(described)
+    fill, points = _wall_gaussians(walls, room, rays, corners, gaussians, count, opacity, dtype)
+    if fill is None:
+        return None, None, stats
     stats["added"] = len(fill)
-    return fill, np.concatenate(all_points), stats
+    return fill, points, stats
 
 
 def placed_walls(room: Room | None) -> list:

@@ -47,7 +47,7 @@ from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane
 from .sphere_fill import sphere_fill_gaussians
 from .sphere_snap import snap_spheres
 from .back_fill import back_fill
-from .room_closing import close_room, keep_inside, placed_walls
+from .room_closing import close_behind_lights, close_room, keep_inside, placed_walls
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
@@ -665,12 +665,31 @@ class Trainer:
                                prior=True)
             if cfg.highlight_fill:
                 later = [f[0] for f in (walls, grown, closed, planar) if f is not None and f[0] is not None]
-                later = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in later])
-                         if later and cfg.highlight_on_fill else None)  # the planes placed since warm-up
-                planes = placed_walls(self._room) if cfg.highlight_to_walls else None
-                lights, stats = highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
-                                                         fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=later,
-                                                         planes=planes)
+
+                def highlights(placed: list):
+                    on = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in placed])
+                          if placed and cfg.highlight_on_fill else None)  # the planes placed since warm-up
+                    planes = placed_walls(self._room) if cfg.highlight_to_walls else None
+                    return highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
+                                                    fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=on,
+                                                    planes=planes)
+
+                lights, stats = highlights(later)
+                behind = None
+                if (cfg.close_behind_lights and cfg.close_room and self._room is not None and lights is not None
+                        and stats.get("box_scale_inside")):
+                    # the sides the sweep left open, closed behind the lights found on them (room_closing.py);
+                    # then the lights again, those whose reflections cross a new wall moved onto it
+                    wall, points, wstats = close_behind_lights(self._room, self.rays, self.backend.trace, seen,
+                                                               lights.means.detach().double().cpu().numpy(),
+                                                               cfg.plane_fill_count, known=shown, seed=cfg.seed)
+                    if wall is not None:
+                        more = extend_plane_fill(self._room, self.rays, points, cfg.plane_fill_count)
+                        behind = (wall, wstats, more)
+                        lights, stats = highlights(later + [g for g in (wall, more[0]) if g is not None])
+                    else:
+                        for note in wstats["notes"]:
+                            self.decisions.append(f"step {self.step}: {note}")
                 stats["inside"] = keep_inside(lights.means, self._room) if lights is not None else 0
                 self._add_fill(lights, stats, "%(added)d emitting Gaussians where %(highlight_rays)d open highlight "
                                "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "
@@ -679,6 +698,11 @@ class Trainer:
                                "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)",
                                prior=cfg.highlight_frozen, matte=cfg.highlight_frozen,
                                growth=cfg.highlight_max_growth, growth_rows=stats["snapped_rows"])
+                if behind is not None:
+                    self._add_fill(behind[0], behind[1], "%(added)d Gaussians on walls placed behind the lights the "
+                                   "highlight fill found on the room's open sides: %(walls)s", prior=True)
+                    self._add_fill(*behind[2], "%(added)d plane-fill Gaussians reaching the walls placed behind the "
+                                   "lights (grown: %(grown)s)", prior=True)
         relight_at = cfg.warmup + int(cfg.plane_fill_relight_at * (cfg.iterations - cfg.warmup))
         if (reflections and cfg.plane_fill_relight and self._room is not None and not self.plane_fill_relit
                 and self.step >= relight_at):
