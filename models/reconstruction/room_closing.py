@@ -174,6 +174,32 @@ def _reflections(rays, trace_fn, gaussians: Gaussians, glossy: bool, seed: int) 
             "radiance": radiance.numpy(), "ordinary": ordinary, "view": rays.view_of_ray[index].numpy()}
 
 
+NEEDED = ("specular", "f0", "roughness", "normal", "depth")  # the buffers the room closing reads
+
+
+def _side_name(n: np.ndarray) -> str:
+    """"+y", "-z", ...: the axis a side's normal ``n`` runs along, with its sign."""
+    axis = int(np.argmax(np.abs(n)))
+    return ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
+
+
+def _sides_to_close(room: Room, corners: np.ndarray, known: np.ndarray | None) -> list:
+    """The room's open sides (``open_sides``) but those ``known`` points (mirror stereo's) reach past the box's
+    face: a side they reach is known, not swept (``close_room``)."""
+    sides = open_sides(room)
+    if known is not None and len(known) >= 10:
+        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
+    return sides
+
+
+def _add_wall(room: Room, corners: np.ndarray, n: np.ndarray, s: float) -> np.ndarray:
+    """The wall n . p = s joins ``room.bound``, facing back into the room; returns the box ``corners`` carried out
+    to it."""
+    room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))
+    grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])
+    return box_corners(grown.min(0), grown.max(0))
+
+
 def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls: list, described: list,
                  stats: dict, max_walls: int, label: str, refine: bool = False) -> np.ndarray:
     """Close ``sides`` (removed from the list as they close) one at a time, the clearest first, with the
@@ -195,8 +221,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
             value = np.array([sc for sc, _ in scores])
             support = np.array([sp for _, sp in scores])
             valid = np.isfinite(value) & (support >= MIN_SUPPORT)
-            axis = int(np.argmax(np.abs(n)))
-            where = ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
+            where = _side_name(n)
             if valid.sum() < 5:
                 undecided[where] = (f"room closing: the open side {where}{label}: too few reflections land on it to "
                                     f"sweep it ({int(valid.sum())} of {len(offsets)} offsets hold {MIN_SUPPORT} "
@@ -238,9 +263,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
         if len(points) < 16:
             points, colours = (x[going] + tt[:, None] * r[going])[landed], refl["radiance"][going][landed]
         walls.append((n, s, points, colours))
-        room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))  # the wall faces back into the room
-        grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])  # the box reaches the wall
-        corners = box_corners(grown.min(0), grown.max(0))
+        corners = _add_wall(room, corners, n, s)
         described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
                          f"the far end's{label})")
     stats["notes"] += [undecided[k] for k in sorted(undecided)]
@@ -262,12 +285,10 @@ def close_room(room: Room | None, rays, trace_fn, gaussians: Gaussians, count: i
     pass's; 0 when it did not run), ``notes``)."""
     stats = {"walls": "none", "added": 0, "rays": 0, "glossy_rays": 0, "notes": []}
     t = rays.targets
-    if room is None or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth")):
+    if room is None or not all(k in t for k in NEEDED):
         return None, None, stats
     corners = box_corners(room.lo, room.hi)
-    sides = open_sides(room)
-    if known is not None and len(known) >= 10:
-        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
+    sides = _sides_to_close(room, corners, known)
     walls, described = [], []
     for glossy in (False, True):
         if not sides or len(walls) >= max_walls:
@@ -348,18 +369,14 @@ def close_behind_lights(room: Room | None, rays, trace_fn, gaussians: Gaussians,
     walls' points or None, {"walls": description, "added", "notes"})."""
     stats = {"walls": "none", "added": 0, "notes": []}
     t = rays.targets
-    if (room is None or lights is None or len(lights) < MIN_LIGHTS
-            or not all(k in t for k in ("specular", "f0", "roughness", "normal", "depth"))):
+    if room is None or lights is None or len(lights) < MIN_LIGHTS or not all(k in t for k in NEEDED):
         return None, None, stats
     lights = np.asarray(lights, dtype=np.float64)
     corners = box_corners(room.lo, room.hi)
-    sides = open_sides(room)
-    if known is not None and len(known) >= 10:
-        sides = [n for n in sides if np.quantile(known @ n, 0.995) < (corners @ n).max() - room.tol]
+    cell = float((room.hi - room.lo).max()) / CELLS  # as close_room's sweep
     walls, described, refl = [], [], {}
-    for n in sides:
-        axis = int(np.argmax(np.abs(n)))
-        where = ('+' if n[axis] > 0 else '-') + 'xyz'[axis]
+    for n in _sides_to_close(room, corners, known):
+        where = _side_name(n)
         face = float((corners @ n).max())
         proj = lights @ n
         on = proj >= proj.max() - 3 * room.tol
@@ -376,7 +393,7 @@ def close_behind_lights(room: Room | None, rays, trace_fn, gaussians: Gaussians,
                 continue
             going = r["r"] @ n > 0.05
             _, _, landed = _score(r["x"][going], r["r"][going], r["lum"][going], r["view"][going], n, s, bounds,
-                                  room.tol, float((room.hi - room.lo).max()) / CELLS)
+                                  room.tol, cell)
             tt = (s - r["x"][going] @ n) / (r["r"][going] @ n)
             hit = r["x"][going] + tt[:, None] * r["r"][going]
             keep = landed & r["ordinary"][going]
@@ -390,9 +407,7 @@ def close_behind_lights(room: Room | None, rays, trace_fn, gaussians: Gaussians,
                                   "emitters on it, but too few reflections land there to colour a wall: not placed")
             continue
         walls.append((n, s, points, colours))
-        room.bound.append((-n, -s, np.zeros(0, dtype=np.int64)))
-        grown = np.concatenate([corners, corners + (s - corners @ n)[:, None] * n])
-        corners = box_corners(grown.min(0), grown.max(0))
+        corners = _add_wall(room, corners, n, s)
         described.append(f"{where} at {s - face:.2f} beyond the box, behind {int(on.sum())} of the highlight "
                          f"fill's emitters ({len(points)} reflections colour it)")
     if not walls:
