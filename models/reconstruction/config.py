@@ -155,6 +155,8 @@ class ReconstructConfig:
                                          minimum=0)
     mirror_stereo_count: int = setting(8000, "with the far field: Gaussians placed by stereo on planar mirrors "
                                        "(0 = off)", minimum=0)
+    mirror_stereo_opacity: float = setting(0.3, "mirror stereo: the opacity its Gaussians start at (they train)",
+                                           minimum=0.01, maximum=0.99)
     mirror_stereo_min_share: float = setting(0.3, "mirror stereo: a depth is a candidate only where at least this "
                                              "share of the other mirrors (and at least 3) see it: 6 of 19 on a "
                                              "20-view room (3 placed a fifth more stereo Gaussians on "

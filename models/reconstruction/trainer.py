@@ -594,6 +594,7 @@ class Trainer:
             stereo = None
             if cfg.mirror_stereo_count > 0:
                 stereo = mirror_stereo_gaussians(self.rays, self.backend.trace, scene, cfg.mirror_stereo_count,
+                                                 opacity=cfg.mirror_stereo_opacity,
                                                  seed=cfg.seed, min_share=cfg.mirror_stereo_min_share,
                                                  plane_slack=cfg.stereo_plane_slack)
                 fills.append((*stereo,
