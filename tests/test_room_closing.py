@@ -271,3 +271,41 @@ def test_a_wall_is_not_made_of_reflections_that_pass_another_open_side_first(mon
     monkeypatch.setattr(closing, "MAX_PAST", 1.0)  # the rule off: the back wall is placed where it is
     placed, _ = sweep()
     assert "-z" in placed and abs(placed["-z"] - 3.0) < 0.15, placed
+
+
+def test_a_side_whose_reflections_reach_only_just_past_the_box_is_closed_at_its_best(monkeypatch):
+    """``SHORT_REACH``: the minimum is weighed against the far end, the farthest offsets that still hold
+    ``MIN_SUPPORT`` view-cells; where those end within SHORT_REACH x the room's size beyond the box, there is no far
+    end, and the wall goes to the best offset within the reach (a room is closed; zoo_corridor's wall behind the
+    cameras, seen only in two small spheres: support up to 0.18 beyond the box, the far field stood for it). With
+    the reach long, the same weak minimum is no clear one and the side stays open."""
+    import models.reconstruction.room_closing as closing
+    from models.reconstruction.plane_fill import Room
+
+    e = np.eye(3)
+    lo, hi = np.array([-1.0, 0.0, -1.0]), np.array([1.0, 1.0, 1.0])
+    corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3)
+    offsets = 1.0 + 2.0 * closing.SWEEP  # the +z face at 1, the room's size 2
+    refl = _back_wall_reflections()
+    refl["r"][:, 2] *= -1  # heading +z
+
+    def sweep(reach: int):
+        def score(x, r, lum, view, n, s, bounds, tol, cell):  # a weak minimum at the third offset
+            i = int(np.argmin(np.abs(offsets - s)))
+            value = 0.8 if i == 2 else 1.0
+            return value, (400 if i < reach else 0), (s - x @ n) / (r @ n) > 0
+
+        monkeypatch.setattr(closing, "_score", score)
+        room = Room(src={}, bound=[(e[1], 0.0, np.arange(3)), (-e[1], -1.0, np.arange(3)),
+                                   (e[0], -1.0, np.arange(3)), (-e[0], -1.0, np.arange(3)),
+                                   (e[2], -1.0, np.arange(3))], lo=lo, hi=hi, tol=0.02, h=0.05)
+        walls, described, stats = [], [], {"notes": []}
+        closing._sweep_sides(refl, [e[2]], room, corners, walls, described, stats, 3, "")
+        return walls, described, stats["notes"]
+
+    short = int(np.searchsorted(closing.SWEEP, closing.SHORT_REACH))  # support ends before SHORT_REACH
+    walls, described, notes = sweep(short)
+    assert len(walls) == 1 and walls[0][1] == pytest.approx(offsets[2]) and not notes, (described, notes)
+    assert "no far end to weigh it against" in described[0]
+    walls, described, notes = sweep(len(offsets))  # the same scores, every offset supported: no clear minimum
+    assert not walls and len(notes) == 1 and "no clear minimum" in notes[0], notes

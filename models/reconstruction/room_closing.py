@@ -38,8 +38,12 @@ reflections that land on it there did not pass the box's face on another side st
 most ``MAX_RATIO`` of the score at the far end of the sweep (the far field is the alternative: a window or an
 opening, whose reflections agree best at infinity, stays open; a minimum on the sweep's far edge is logged, not
 placed, and so is every side a pass leaves open, with why: too few reflections land on it, or no minimum clear
-enough -- zoo_corridor's wall behind the cameras, seen only in two small chrome spheres far down the corridor:
-their reflections hold enough view-cells only 0.2 m past the box, the wall is 0.9 m past it). Sides are closed
+enough). The far end is the farthest offsets that still hold ``MIN_SUPPORT`` view-cells; where they end within
+``SHORT_REACH`` of the room's size beyond the box, there is none to weigh the minimum against, and the wall is
+placed at it, a room being closed: zoo_corridor's wall behind the cameras, seen only in two small chrome spheres
+far down the corridor, whose reflections hold enough view-cells only 0.18 m past the box; its best, 0.11 (the
+wall is 0.9 past it, and the far field stood for it: 22.66 -> 23.11, `test_000`, which faces it, 20.75 ->
+21.69; README, fortieth session). Sides are closed
 one at a time, the clearest first; each wall found bounds the next sweeps (a front wall ends at the ceiling found
 before it). A wall is one Gaussian per grid point of the plane inside the other
 bounds (the plane fill's spacing, coarser to fit the budget), not where a training view sees empty space, matte
@@ -77,6 +81,7 @@ SWEEP = np.geomspace(0.02, 3.0, 40)  # offsets beyond the box's face, x the room
 CELLS = 40               # cells across the room's size on the hypothetical wall
 MIN_SUPPORT = 200        # (cell, view) pairs in cells that two or more views reach
 MAX_RATIO = 0.5          # the minimum's score at most this x the far end's
+SHORT_REACH = 0.1        # ... unless the reflections' support ends within this x the room's size beyond the box
 REFINE = 33              # offsets of the fine sweep over the coarse minimum's two neighbours on each side
 
 
@@ -255,7 +260,10 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
                 undecided[where] = (f"room closing: the open side {where} agrees best at the far edge of its "
                                     f"sweep ({SWEEP[-1]:g}x the room's size){label}: left open (the far field)")
                 continue
-            if ratio > MAX_RATIO:
+            # the far end the minimum is weighed against is the farthest offsets that still hold enough view-cells;
+            # where they end within SHORT_REACH of the room's size, there is no far end to weigh it against
+            short = offsets[last] - face < SHORT_REACH * size
+            if ratio > MAX_RATIO and not short:
                 # the far end the minimum is weighed against is the farthest offsets that still hold enough
                 # view-cells: where that support ends early, the sweep could not see its far end
                 reach = (f"; the reflections hold {MIN_SUPPORT} view-cells only up to {offsets[last] - face:.2f} "
@@ -266,10 +274,11 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
                 continue
             undecided.pop(where, None)
             if best is None or ratio < best[0]:
-                best = (ratio, n, float(offsets[i]), face, where, int(support[i]))
+                best = (ratio, n, float(offsets[i]), face, where, int(support[i]),
+                        float(offsets[last] - face) if short else None)
         if best is None:
             break
-        ratio, n, s, face, where, support = best  # (a candidate: its side's note was dropped above)
+        ratio, n, s, face, where, support, short = best  # (a candidate: its side's note was dropped above)
         others = [m for m in sides if m is not n]  # every side still open, those vetoed included
         going = r @ n > 0.05
         if refine:
@@ -294,7 +303,9 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
         walls.append((n, s, points, colours))
         corners = _add_wall(room, corners, n, s)
         described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
-                         f"the far end's{label})")
+                         f"the far end's{label})" if short is None else
+                         f"{where} at {s - face:.2f} beyond the box ({support} view-cells{label}; the reflections "
+                         f"reach {short:.2f} beyond it, no far end to weigh it against: a room is closed)")
     stats["notes"] += [undecided[k] for k in sorted(undecided)]
     return corners
 
