@@ -150,6 +150,23 @@ def test_highlight_fill_puts_emitters_on_the_plane_fill_where_highlights_end_on_
     assert torch.isfinite(lights.log_scales).all() and (lights.roughness == 1).all()
 
 
+def test_highlight_fill_puts_no_emitters_on_a_mirror_like_planes_fill():
+    """A highlight that ends on the fill of a mirror-like plane (F0 0.9, roughness 0: zoo_corridor's metal walls'
+    unseen parts) is that plane reflecting the light, not the light: with ``on_fill`` it gets no emitter, and it is
+    not counted among those that end on the fill; the open highlights' emitters are unchanged."""
+    rays = _mirror_rays()
+    x = rays.origins[:, 0]
+    rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
+    rays.targets["diffuse"][:] = 0.5
+    scene = _scene()
+    ceiling = torch.arange(len(scene)) >= 8
+    scene.f0[ceiling], scene.roughness[ceiling] = 0.9, 0.0  # the fill a metal plane's
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
+    plain, _ = highlight_fill_gaussians(rays, reference_trace, scene)
+    assert stats["on_fill"] == stats["on_fill_added"] == 0
+    torch.testing.assert_close(lights.means, plain.means)
+
+
 def test_highlight_fill_ends_highlights_on_walls_placed_later():
     """``walls`` (planes placed after warm-up: a ceiling room closing found at z = 1.05, above the scene's box top
     1.0 and under the swept box's 1.1) with ``on_fill``: the open highlights (x > 0.3) end on it, not on the

@@ -233,7 +233,9 @@ class ReconstructConfig:
                                       "or on a wall placed after warm-up (a light on an unseen part of the room's "
                                       "planes: a ceiling lamp behind the cameras) gets an emitter there, at the "
                                       "plane's front. Off: measured worse at two seeds (zoo_mirror_only -0.5 to "
-                                      "-0.9 dB, the other rooms within the spread; README, twenty-third session)")
+                                      "-0.9 dB, the other rooms within the spread; README, twenty-third session); "
+                                      "with the fills of mirror-like planes left out (fortieth session) still "
+                                      "below: zoo_corridor 23.11 -> 22.95, zoo_mirror_only 29.02 -> 28.94")
     highlight_to_walls: bool = setting(True, "highlight fill: an emitter the box sweep leaves at most two of its "
                                        "steps short of a wall room closing placed moves along its ray onto the "
                                        "wall (the sweep tells a lamp's distance to ~10 cm, the wall better: the "

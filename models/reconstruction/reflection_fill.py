@@ -321,7 +321,9 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     distance, so no sweep is needed, and the emitters of different views land on the same patch. Off by default
     (``reconstruct.highlight_on_fill``: measured worse at two seeds, zoo_mirror_only -0.5 to -0.9 dB, whether
     its light was placed twice or, with ``walls``, once on its ceiling; README, twenty-third session). Without
-    it, from ``ON_FILL_NOTE`` of them, a note says they got none.
+    it, from ``ON_FILL_NOTE`` of them, a note says they got none. The fill of a mirror-like plane (``shiny``) does
+    not count: a highlight that ends there is that plane reflecting the light (zoo_corridor's metal walls got
+    emitters on their unseen parts: 23.11 -> 22.60; without them 22.95, README, fortieth session).
 
     ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where the
     mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight that
@@ -365,6 +367,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     open_ = (out.transmittance.reshape(-1) > 0.5).cpu()
     fill_pos = x[:0]
     fill_radiance = radiance[:0]
+    if fill is not None:
+        # a light hangs on a matte surface: a highlight that ends on a mirror-like plane's fill is that plane
+        # reflecting the light, not the light (zoo_corridor: emitters on its metal walls' unseen parts)
+        fill = fill.to(gaussians.means.device) & ~shiny(gaussians.f0, gaussians.roughness.reshape(-1, 1))
     if fill is not None and bool(fill.any()):
         blocked = torch.nonzero(bright & ~open_).reshape(-1)
         if len(blocked):
