@@ -278,7 +278,7 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
                         float(offsets[last] - face) if short else None)
         if best is None:
             break
-        ratio, n, s, face, where, support, short = best  # (a candidate: its side's note was dropped above)
+        ratio, n, s, face, where, support, reached = best  # (a candidate: its side's note was dropped above)
         others = [m for m in sides if m is not n]  # every side still open, those vetoed included
         going = r @ n > 0.05
         if refine:
@@ -303,9 +303,9 @@ def _sweep_sides(refl: dict, sides: list, room: Room, corners: np.ndarray, walls
         walls.append((n, s, points, colours))
         corners = _add_wall(room, corners, n, s)
         described.append(f"{where} at {s - face:.2f} beyond the box ({support} view-cells, score {ratio:.2f} of "
-                         f"the far end's{label})" if short is None else
+                         f"the far end's{label})" if reached is None else
                          f"{where} at {s - face:.2f} beyond the box ({support} view-cells{label}; the reflections "
-                         f"reach {short:.2f} beyond it, no far end to weigh it against: a room is closed)")
+                         f"reach {reached:.2f} beyond it, no far end to weigh it against: a room is closed)")
     stats["notes"] += [undecided[k] for k in sorted(undecided)]
     return corners
 
