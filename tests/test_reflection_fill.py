@@ -101,16 +101,23 @@ def test_highlight_fill_puts_emitters_where_bright_open_reflections_leave_the_bo
     assert (torch.sigmoid(lights.opacity_logits) - 0.5).abs().max() < 1e-6 and (lights.roughness == 1).all()
 
 
-def test_highlight_fill_says_how_many_highlights_end_on_the_plane_fill():
-    """The same lamp; the opaque ceiling over x < 0, marked as the plane fill, blocks the x < -0.3 highlights:
-    with ``on_fill=False`` they are counted and noted (a light on an unseen ceiling gets no emitters); the
-    emitters (x > 0.3) are the same as without the mask, and without it nothing is counted."""
+def _lamp_under_ceiling():
+    """A lamp (radiance 10) over the mirror's |x| > 0.3 parts, the brightest lit surface 0.5, and ``_scene()``'s
+    opaque ceiling over x < 0 (marked, for the tests that need it, as the plane fill): (rays, the mirror points'
+    x, scene, ceiling mask)."""
     rays = _mirror_rays()
     x = rays.origins[:, 0]
     rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
     rays.targets["diffuse"][:] = 0.5
     scene = _scene()
-    ceiling = torch.arange(len(scene)) >= 8  # _scene(): 8 faint corners, then the ceiling
+    return rays, x, scene, torch.arange(len(scene)) >= 8  # _scene(): 8 faint corners, then the ceiling
+
+
+def test_highlight_fill_says_how_many_highlights_end_on_the_plane_fill():
+    """The same lamp; the opaque ceiling over x < 0, marked as the plane fill, blocks the x < -0.3 highlights:
+    with ``on_fill=False`` they are counted and noted (a light on an unseen ceiling gets no emitters); the
+    emitters (x > 0.3) are the same as without the mask, and without it nothing is counted."""
+    rays, x, scene, ceiling = _lamp_under_ceiling()
     lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling)  # on_fill off (default)
     plain, plain_stats = highlight_fill_gaussians(rays, reference_trace, scene)
     assert stats["on_fill"] == (x < -0.3).sum().item() and plain_stats["on_fill"] == 0
@@ -129,12 +136,7 @@ def test_highlight_fill_puts_emitters_on_the_plane_fill_where_highlights_end_on_
     with ``on_fill`` each highlight that ends on the fill gets an emitter just in front of the fill's front, over its
     own mirror point, with the reflection's radiance; the open highlights' emitters (x > 0.3, on the swept box)
     are unchanged."""
-    rays = _mirror_rays()
-    x = rays.origins[:, 0]
-    rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
-    rays.targets["diffuse"][:] = 0.5
-    scene = _scene()
-    ceiling = torch.arange(len(scene)) >= 8
+    rays, x, scene, ceiling = _lamp_under_ceiling()
     lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
     plain, _ = highlight_fill_gaussians(rays, reference_trace, scene)
     want = (x < -0.3).sum().item()
@@ -154,12 +156,7 @@ def test_highlight_fill_puts_no_emitters_on_a_mirror_like_planes_fill():
     """A highlight that ends on the fill of a mirror-like plane (F0 0.9, roughness 0: zoo_corridor's metal walls'
     unseen parts) is that plane reflecting the light, not the light: with ``on_fill`` it gets no emitter, and it is
     not counted among those that end on the fill; the open highlights' emitters are unchanged."""
-    rays = _mirror_rays()
-    x = rays.origins[:, 0]
-    rays.targets["specular"][x.abs() > 0.3] = 0.9 * 10.0
-    rays.targets["diffuse"][:] = 0.5
-    scene = _scene()
-    ceiling = torch.arange(len(scene)) >= 8
+    rays, x, scene, ceiling = _lamp_under_ceiling()
     scene.f0[ceiling], scene.roughness[ceiling] = 0.9, 0.0  # the fill a metal plane's
     lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
     plain, _ = highlight_fill_gaussians(rays, reference_trace, scene)
