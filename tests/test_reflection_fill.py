@@ -265,6 +265,31 @@ def test_snap_to_planes_takes_the_first_wall_ahead_within_the_tolerance():
     assert not snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.1), offset=0.0).any()  # 0.2 short: beyond 0.1
 
 
+def test_emitters_the_sweep_left_beyond_a_plane_the_buffers_show_are_reported():
+    """A light whose reflections left the box above a ceiling the buffers show (zoo_mirror_only: 1,373 emitters up
+    to 0.6 m above it, at the box's back face): the statistics count them and a note names the plane; a handful
+    beyond, or none, makes no note. Nothing moves (log only)."""
+    from models.reconstruction.reflection_fill import BEYOND_NOTE, _note_beyond_known
+
+    ceiling = (np.array([0.0, 1.0, 0.0]), 2.45)  # outward normal up, one grid spacing under y = 2.5
+    above = torch.stack([torch.linspace(-0.5, 0.5, 80), torch.linspace(2.6, 3.1, 80), torch.full((80,), 1.0)], -1)
+    below = torch.stack([torch.zeros(40), torch.full((40,), 2.3), torch.linspace(-1.0, 0.0, 40)], -1)
+    pos = torch.cat([above, below])
+    before = pos.clone()
+    stats = {"notes": []}
+    _note_beyond_known(pos, [ceiling, (np.array([0.0, -1.0, 0.0]), 0.05)], tol=0.01, stats=stats)
+    assert stats["beyond_known"] == 80 and torch.equal(pos, before)
+    (note,) = stats["notes"]
+    assert "80 of the 120 emitters" in note and "[0.0, 1.0, 0.0]" in note and "up to 0.65 past it" in note
+    few = torch.cat([above[: BEYOND_NOTE - 1], below])
+    stats = {"notes": []}
+    _note_beyond_known(few, [ceiling], tol=0.01, stats=stats)
+    assert stats["beyond_known"] == BEYOND_NOTE - 1 and stats["notes"] == []
+    stats = {"notes": []}
+    _note_beyond_known(below, [ceiling], tol=0.01, stats=stats)
+    assert stats["beyond_known"] == 0 and stats["notes"] == []
+
+
 @pytest.mark.parametrize("lamp_z", [5.0, 8.0])
 def test_box_scale_search_extends_past_its_range_for_a_far_lamp(lamp_z):
     """A lamp at 4.5-7x the box's half-size: the first range (1-3) ends at its edge, so the search goes on and

@@ -167,13 +167,18 @@ def test_an_open_side_is_closed_behind_the_lights_found_on_it(spheres, monkeypat
 def test_lights_placed_beyond_a_wall_move_in_front_of_it(spheres):
     """``keep_inside``: the highlight fill's lights above a ceiling the closing placed would be hidden by it;
     they move onto the room's side, one grid spacing in front; points inside stay where they are."""
-    from models.reconstruction.room_closing import keep_inside, placed_walls
+    from models.reconstruction.room_closing import keep_inside, placed_walls, shown_planes
 
     _, stats = plane_fill_gaussians(spheres)
     room = stats["room"]
     assert keep_inside(torch.zeros(3, 3), room) == 0  # no wall placed: nothing moves
-    assert placed_walls(room) == [] and placed_walls(None) == []
+    assert placed_walls(room) == [] and placed_walls(None) == [] and shown_planes(None) == []
+    shown = shown_planes(room)  # the planes the buffers show (the highlight fill reports emitters beyond them)
+    assert len(shown) == len(room.bound) > 0
+    for (n, s), (m, d, _) in zip(shown, room.bound):
+        assert np.allclose(n, -m) and abs(s - (-d - room.h)) < 1e-12
     room.bound.append((np.array([0.0, -1.0, 0.0]), -2.5, np.zeros(0, dtype=np.int64)))  # a ceiling at y = 2.5
+    assert len(shown_planes(room)) == len(shown)  # a placed wall is not one the buffers show
     (n, s), = placed_walls(room)  # what the highlight fill moves emitters onto: out of the room, one spacing in
     assert np.allclose(n, [0.0, 1.0, 0.0]) and abs(s - (2.5 - room.h)) < 1e-12
     points = torch.tensor([[0.0, 2.7, 0.0], [0.5, 1.0, 0.2], [0.1, 2.5, -0.3]])

@@ -468,6 +468,14 @@ def placed_walls(room: Room | None) -> list:
     return [(-np.asarray(m, dtype=np.float64), -float(d) - room.h) for m, d, inl in room.bound if not len(inl)]
 
 
+def shown_planes(room: Room | None) -> list:
+    """The room's bounding planes the buffers show (not the walls ``close_room`` placed: ``placed_walls``), in the
+    same form: (n, s), n . p = s one grid spacing on the room's side, n pointing out; [] without a room."""
+    if room is None:
+        return []
+    return [(-np.asarray(m, dtype=np.float64), -float(d) - room.h) for m, d, inl in room.bound if len(inl)]
+
+
 def keep_inside(points: torch.Tensor, room: Room | None) -> int:
     """Moves ``points`` [N, 3] (in place) that lie beyond a wall ``close_room`` placed onto the room's side of it,
     one grid spacing in front of it; returns how many moved. The highlight fill puts the lights seen only in

@@ -47,7 +47,7 @@ from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane
 from .sphere_fill import sphere_fill_gaussians
 from .sphere_snap import snap_spheres
 from .back_fill import back_fill
-from .room_closing import close_behind_lights, close_room, keep_inside, placed_walls
+from .room_closing import close_behind_lights, close_room, keep_inside, placed_walls, shown_planes
 from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
 
 PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
@@ -673,7 +673,7 @@ class Trainer:
                     planes = placed_walls(self._room) if cfg.highlight_to_walls else None
                     return highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
                                                     fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=on,
-                                                    planes=planes)
+                                                    planes=planes, known=shown_planes(self._room))
 
                 lights, stats = highlights(later)
                 behind = None
