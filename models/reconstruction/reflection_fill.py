@@ -266,15 +266,16 @@ def _note_beyond_known(pos: torch.Tensor, known: list, tol: float, stats: dict) 
         past = pos @ torch.as_tensor(np.asarray(n), dtype=pos.dtype, device=pos.device) - float(s)
         out = past > tol
         beyond_any |= out
-        if int(out.sum()) and (worst is None or int(out.sum()) > worst[0]):
-            worst = (int(out.sum()), np.asarray(n), float(past[out].max()))
+        count = int(out.sum())
+        if count and (worst is None or count > worst[0]):
+            worst = (count, np.asarray(n), float(past[out].max()))
     stats["beyond_known"] = int(beyond_any.sum())
     if worst is not None and worst[0] >= max(BEYOND_NOTE, 0.1 * len(pos)):
         stats["notes"].append(
             f"highlight fill: {worst[0]} of the {len(pos)} emitters the box sweep placed lie beyond a plane of the "
-            f"room the buffers show (its outward normal {(np.round(worst[1], 2) + 0.0).tolist()}), up to {worst[2]:.2f} past "
-            "it: their reflections crossed it, so the light they show may hang on it, where the plane fill blocks "
-            "such reflections (reconstruct.highlight_on_fill)")
+            f"room the buffers show (its outward normal {(np.round(worst[1], 2) + 0.0).tolist()}), up to "
+            f"{worst[2]:.2f} past it: their reflections crossed it, so the light they show may hang on it, where the "
+            "plane fill blocks such reflections (reconstruct.highlight_on_fill)")
 
 
 def sweep_box_scale(x: torch.Tensor, r: torch.Tensor, bright: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,

@@ -460,20 +460,26 @@ def close_behind_lights(room: Room | None, rays, trace_fn, gaussians: Gaussians,
     return fill, points, stats
 
 
-def placed_walls(room: Room | None) -> list:
-    """The walls ``close_room`` placed, as (n, s): n . p = s one grid spacing on the room's side of the wall (where
-    ``keep_inside`` leaves the lights beyond it), n pointing out of the room; [] without a room."""
+def _bound_planes(room: Room | None, shown: bool) -> list:
+    """The room's bounding planes the buffers show (``shown``) or the walls ``close_room`` placed (not shown) as
+    (n, s): n . p = s one grid spacing on the room's side of the plane, n pointing out of the room; [] without a
+    room."""
     if room is None:
         return []
-    return [(-np.asarray(m, dtype=np.float64), -float(d) - room.h) for m, d, inl in room.bound if not len(inl)]
+    return [(-np.asarray(m, dtype=np.float64), -float(d) - room.h) for m, d, inl in room.bound
+            if bool(len(inl)) == shown]
+
+
+def placed_walls(room: Room | None) -> list:
+    """The walls ``close_room`` placed, as (n, s) (``_bound_planes``), where ``keep_inside`` leaves the lights
+    beyond them."""
+    return _bound_planes(room, shown=False)
 
 
 def shown_planes(room: Room | None) -> list:
-    """The room's bounding planes the buffers show (not the walls ``close_room`` placed: ``placed_walls``), in the
-    same form: (n, s), n . p = s one grid spacing on the room's side, n pointing out; [] without a room."""
-    if room is None:
-        return []
-    return [(-np.asarray(m, dtype=np.float64), -float(d) - room.h) for m, d, inl in room.bound if len(inl)]
+    """The room's bounding planes the buffers show, in ``placed_walls``' form (the highlight fill reports emitters
+    the sweep left beyond them)."""
+    return _bound_planes(room, shown=True)
 
 
 def keep_inside(points: torch.Tensor, room: Room | None) -> int:
