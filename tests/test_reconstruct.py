@@ -832,35 +832,6 @@ def test_frozen_highlight_emitters_keep_their_geometry_and_are_not_relit(demo):
     assert bool((trainer.params["diffuse"].grad[rows] == 1).all())
 
 
-def test_the_initialisations_gaussians_grow_at_most_max_growth_times_their_median_size(demo):
-    """``max_growth``: each Gaussian of the initialisation keeps its largest scale within that many times the
-    median largest scale they started with (trained free, a shelf seen edge-on grew Gaussians up to 1.2 m that
-    spilled past its edge in front of a test view); the plane fill's priors are not limited, and training moves
-    a capped Gaussian's scales only up to the limit; 0 turns it off."""
-    capture, init = demo
-    cfg = dict(SMALL, iterations=4, warmup=10, prune_every=0, sphere_fill=False, max_growth=3.0)
-    trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
-    n = len(trainer.prior) - int(trainer.prior.sum())
-    assert n > 0 and bool(trainer.prior.any())  # the demo's plane fill: priors after the initialisation's rows
-    start = trainer.params["log_scales"].detach()[:n].amax(dim=1)
-    torch.testing.assert_close(trainer.scale_cap[:n], (start.median() + math.log(3.0)).expand(n))
-    assert not bool(torch.isfinite(trainer.scale_cap[n:]).any())
-    for _ in range(3):
-        trainer.train_step()
-    with torch.no_grad():
-        before = trainer.params["log_scales"].clone()
-        trainer.params["log_scales"] += 5.0  # e^5 = 148x
-    trainer._clamp()
-    ls = trainer.params["log_scales"].detach()
-    assert bool((ls[:n].amax(dim=1) <= trainer.scale_cap[:n] + 1e-6).all())
-    assert float(ls[:n].amax(dim=1).exp().max()) <= 3.0 * float(start.median().exp()) * (1 + 1e-5)
-    free = trainer.prior & ~trainer.fixed  # priors grow as before (the thickness limit holds their thinnest axis)
-    grown = torch.isclose(ls[free].amax(dim=1), (before + 5.0)[free].amax(dim=1))
-    assert float(grown.float().mean()) > 0.95
-    off = Trainer(capture, init, ReconstructConfig.from_dict(dict(cfg, max_growth=0.0)), tracer())
-    assert not bool(torch.isfinite(off.scale_cap).any())
-
-
 def test_highlight_emitters_on_a_wall_grow_at_most_the_growth_limit_also_after_a_checkpoint_and_a_prune(demo):
     """``highlight_max_growth``: each scale of the highlight fill's emitters that ``highlight_to_walls`` moved onto
     a wall stays within that many times the median size the fill placed them all with (trained free, they grew
@@ -869,7 +840,7 @@ def test_highlight_emitters_on_a_wall_grow_at_most_the_growth_limit_also_after_a
     the rows through a prune and a checkpoint."""
     capture, init = demo
     cfg = dict(SMALL, iterations=12, warmup=10, prune_every=0, sphere_fill=False, highlight_max_growth=2.0,
-               highlight_to_walls=True, max_growth=0.0)
+               highlight_to_walls=True)
     trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
     for _ in range(11):
         trainer.train_step()

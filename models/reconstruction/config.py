@@ -244,13 +244,6 @@ class ReconstructConfig:
                                        "0, README twenty-ninth session); with it and close_room_refine: demo +0.25 "
                                        "/ +0.64 dB at seeds 0 / 1, zoo_spheres +0.06 / +0.15 (README, thirtieth and "
                                        "thirty-first sessions)")
-    max_growth: float = setting(8.0, "each Gaussian of the initialisation (the captured points, not the fills) "
-                                "keeps its largest scale within this many times the median largest scale of them "
-                                "at the start (0: no limit). Trained free, a surface seen edge-on grew Gaussians "
-                                "0.2-1.2 m across that spill past its edge into space no training view sees, in "
-                                "front of a test view standing there (zoo_mirror_metal's shelf: a dark slab over "
-                                "its mirror in test_001; 8: 29.52 -> 30.48 dB, README forty-second session)",
-                                minimum=0.0)
     highlight_max_growth: float = setting(3.0, "the highlight fill's emitters that highlight_to_walls moved onto a "
                                           "wall keep each scale within this many times the median size the fill "
                                           "gave its emitters (0: no limit). Trained free, they grew into sheets up "

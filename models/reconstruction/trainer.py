@@ -137,14 +137,8 @@ class Trainer:
         # the far field's Gaussians (far_field_margin keeps them out of the captured room's box)
         self.far = torch.zeros_like(self.reflected)
         self._far_rows: torch.Tensor | None = None
-        # each Gaussian's largest log scale allowed (highlight_max_growth: the highlight fill's emitters; max_growth:
-        # the initialisation's; inf: none)
+        # each Gaussian's largest log scale allowed (highlight_max_growth: the highlight fill's emitters; inf: none)
         self.scale_cap = torch.full((len(self.params["means"]),), math.inf, device=self.device)
-        # (max_growth: the initialisation's Gaussians, within a multiple of their median size at the start)
-        n_init = len(self.scale_cap) - n_prior
-        if config.max_growth > 0 and n_init > 0:
-            size = self.params["log_scales"].detach()[:n_init].amax(dim=1).median() + math.log(config.max_growth)
-            self.scale_cap[:n_init] = size.to(self.scale_cap)
         self._capped_rows: torch.Tensor | None = None
         # what a checkpoint must have been trained from to be resumed (the stage adds its input files' digests)
         self.inputs: dict[str, str] = {}
