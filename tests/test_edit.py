@@ -431,6 +431,12 @@ def test_stage_cli_apply_truth_evaluate(tiny, capsys):
     changed = metrics["changed_region"]
     assert all(np.isfinite(changed[f"{kind}_psnr_{layer}{suffix}"]) for kind in ("edited", "unedited")
                for layer in ("final", "diffuse", "specular") for suffix in ("", "_tonemapped")), changed
+    # ... and pooled over every view's changed pixels (each pixel weighing the same), their count beside
+    assert all(np.isfinite(changed[f"pooled_{kind}_psnr_{layer}_tonemapped"]) for kind in ("edited", "unedited")
+               for layer in ("final", "diffuse", "specular")), changed
+    views = read_capture(root / "truth", layers=["diffuse"]).views
+    pixels = sum(v.camera.width * v.camera.height for v in views)
+    assert changed["changed_pixels"] == round(changed["changed_fraction"] * pixels) > 0
     # the moved ball shows where the ground truth has it: on the pixels where the edited truth is nearer than
     # the unedited capture (the ball's new silhouette), the edited render's depth matches the truth's
     from models.capture.exr import read_exr_channels

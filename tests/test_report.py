@@ -168,11 +168,13 @@ def test_batch_report_sets_a_photos_run_beside_its_exact_room(tmp_path):
 
 def test_batch_report_lists_every_edit_with_its_gain_tonemapped_and_linear(tmp_path):
     """Each scene's edits (edits/<name>/metrics.json): the changed pixels' PSNR unedited and ours (tonemapped), the
-    gain, the linear gain beside it, and the count of edits gaining >= 3 dB under each; an edit scored before the
-    tonemapped keys existed shows a dash, not a number."""
+    gain, the gain pooled over the views' changed pixels and the linear gain beside it, and the count of edits
+    gaining >= 3 dB under each; an edit scored before the tonemapped (or pooled) keys existed shows a dash, not a
+    number."""
     edits = {"room": {"move": {"changed_fraction": 0.05, "unedited_psnr_final_tonemapped": 20.0,
                                "edited_psnr_final_tonemapped": 24.5, "unedited_psnr_final": 30.0,
-                               "edited_psnr_final": 31.0},
+                               "edited_psnr_final": 31.0, "pooled_unedited_psnr_final_tonemapped": 21.0,
+                               "pooled_edited_psnr_final_tonemapped": 23.5},
                       "paint": {"changed_fraction": 0.1, "unedited_psnr_final_tonemapped": 18.0,
                                 "edited_psnr_final_tonemapped": 19.0, "unedited_psnr_final": 20.0,
                                 "edited_psnr_final": 26.0}},
@@ -192,10 +194,10 @@ def test_batch_report_lists_every_edit_with_its_gain_tonemapped_and_linear(tmp_p
     html = out.read_text().split("<h2>Edits")[1]
     cells = {m.group(1): re.findall(r"<td[^>]*>(.*?)</td>", m.group(0))
              for m in re.finditer(r"<tr><td class=\"l\">\w+</td><td class=\"l\">(\w+)</td>.*?</tr>", html)}
-    assert cells["move"] == ["room", "move", "5.0", "20.00", "24.50", "+4.50", "+1.00"]
-    assert cells["paint"] == ["room", "paint", "10.0", "18.00", "19.00", "+1.00", "+6.00"]
-    assert cells["shift"] == ["old", "shift", "20.0", "–", "–", "–", "+2.00"]
-    assert "1 of 3 edits gain at least 3 dB tonemapped (1 linear)" in html
+    assert cells["move"] == ["room", "move", "5.0", "20.00", "24.50", "+4.50", "+2.50", "+1.00"]
+    assert cells["paint"] == ["room", "paint", "10.0", "18.00", "19.00", "+1.00", "–", "+6.00"]
+    assert cells["shift"] == ["old", "shift", "20.0", "–", "–", "–", "–", "+2.00"]
+    assert "1 of 3 edits gain at least 3 dB tonemapped (0 pooled, 1 linear)" in html
     assert '<td class="good">+4.50</td>' in html
     # an edit's metrics.json cut short (a run stopped while writing it): an error naming that file
     broken = tmp_path / "room" / "edits" / "move" / "metrics.json"

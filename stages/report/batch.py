@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from models.metrics.edits import changed_region_gains
+from models.metrics.edits import changed_region_gains, changed_region_pooled_gain
 
 from .html import esc, fmt, hms, page, read_json
 
@@ -112,7 +112,7 @@ def _edits_table(scene_dirs: list[Path]) -> str:
     """Every scene's edits (<scene>/edits/<name>/metrics.json, the edit stage's): on the pixels the edit changed,
     the unedited render's and ours against the edited truth, tonemapped (the headline), the gain, and the linear
     gain beside it; a line counting the edits that gain at least EDIT_GAIN_DB. Empty without edits."""
-    rows, counted, tonemapped_ok, linear_ok = [], 0, 0, 0
+    rows, counted, tonemapped_ok, linear_ok, pooled_ok = [], 0, 0, 0, 0
     for d in scene_dirs:
         for f in sorted((d / "edits").glob("*/metrics.json")) if (d / "edits").is_dir() else []:
             ch = read_json(f).get("changed_region", {})
@@ -120,12 +120,15 @@ def _edits_table(scene_dirs: list[Path]) -> str:
             counted += 1
             tonemapped_ok += gain is not None and gain >= EDIT_GAIN_DB
             linear_ok += linear is not None and linear >= EDIT_GAIN_DB
+            pooled = changed_region_pooled_gain(ch)
+            pooled_ok += pooled is not None and pooled >= EDIT_GAIN_DB
             changed = fmt(100 * ch["changed_fraction"], 1) if "changed_fraction" in ch else "–"
             mark = "" if gain is None or gain < EDIT_GAIN_DB else " class=\"good\""
             rows.append(f"<tr><td class=\"l\">{esc(d.name)}</td><td class=\"l\">{esc(f.parent.name)}</td>"
                         f"<td>{changed}</td><td>{fmt(ch.get('unedited_psnr_final_tonemapped'))}</td>"
                         f"<td>{fmt(ch.get('edited_psnr_final_tonemapped'))}</td>"
                         f"<td{mark}>{'–' if gain is None else f'{gain:+.2f}'}</td>"
+                        f"<td>{'–' if pooled is None else f'{pooled:+.2f}'}</td>"
                         f"<td>{'–' if linear is None else f'{linear:+.2f}'}</td></tr>")
     if not rows:
         return ""
@@ -133,9 +136,12 @@ def _edits_table(scene_dirs: list[Path]) -> str:
             "trained model, scored on the pixels where the edited ground truth differs from the unedited one: the "
             "unedited render (doing nothing) and ours, final PSNR tonemapped (as Table 1), the gain, and the gain "
             "linear at the edited truth's peak (ruled by the brightest changed pixels: a window, a lamp, a "
-            f"highlight). {tonemapped_ok} of {counted} edits gain at least {EDIT_GAIN_DB:g} dB tonemapped "
-            f"({linear_ok} linear).</p><table><tr><th class=\"l\">scene</th><th class=\"l\">edit</th>"
-            "<th>changed pixels (%)</th><th>unedited</th><th>ours</th><th>gain</th><th>gain, linear</th></tr>"
+            "highlight). The gain is the mean of the views' (each view weighing the same, however few of its "
+            "pixels changed); pooled: one PSNR over every view's changed pixels together, each pixel weighing the "
+            f"same. {tonemapped_ok} of {counted} edits gain at least {EDIT_GAIN_DB:g} dB tonemapped "
+            f"({pooled_ok} pooled, {linear_ok} linear).</p><table><tr><th class=\"l\">scene</th>"
+            "<th class=\"l\">edit</th><th>changed pixels (%)</th><th>unedited</th><th>ours</th><th>gain</th>"
+            "<th>gain, pooled</th><th>gain, linear</th></tr>"
             + "".join(rows) + "</table>")
 
 
