@@ -437,6 +437,22 @@ def test_stage_cli_apply_truth_evaluate(tiny, capsys):
     views = read_capture(root / "truth", layers=["diffuse"]).views
     pixels = sum(v.camera.width * v.camera.height for v in views)
     assert changed["changed_pixels"] == round(changed["changed_fraction"] * pixels) > 0
+    # pooled = the changed pixels' squared error averaged over all views, each pixel weighing the same: each
+    # view scored alone, its MSE weighted by its changed pixels, gives the pooled MSE back
+    from models.capture.types import Capture
+    from models.metrics.edits import changed_region_metrics
+
+    capture, truth = read_capture(root / "capture"), read_capture(root / "truth")
+    alone = [changed_region_metrics(capture, Capture([v], truth.meta), out / "renders" / "test",
+                                    root / "renders" / "test") for v in truth.views]
+    alone = [a for a in alone if a["changed_pixels"]]
+    assert len(alone) >= 2  # a pooling over one view would prove nothing
+    for kind in ("edited", "unedited"):
+        for a in alone:  # one view: pooled = its own PSNR
+            assert a[f"pooled_{kind}_psnr_final_tonemapped"] == pytest.approx(a[f"{kind}_psnr_final_tonemapped"])
+        mse = sum(10 ** (-a[f"{kind}_psnr_final_tonemapped"] / 10) * a["changed_pixels"] for a in alone)
+        mse /= sum(a["changed_pixels"] for a in alone)
+        assert changed[f"pooled_{kind}_psnr_final_tonemapped"] == pytest.approx(-10 * np.log10(mse), abs=1e-6)
     # the moved ball shows where the ground truth has it: on the pixels where the edited truth is nearer than
     # the unedited capture (the ball's new silhouette), the edited render's depth matches the truth's
     from models.capture.exr import read_exr_channels

@@ -41,6 +41,7 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
     before = {v.name: v for v in capture.split("test")}
     out: dict[str, list] = {}
     pooled: dict[str, list] = {}  # every view's changed pixels' tonemapped squared errors, per key (pooled_*)
+    changed = 0
     for view in truth.split("test"):
         if view.name not in before:
             raise ValueError(f"ground-truth view {view.name!r} has no test view of that name in the capture")
@@ -50,7 +51,7 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
         diff = uniform_filter(diff, (CHANGED_FILTER, CHANGED_FILTER, 1))
         mask = np.abs(diff).max(axis=-1) > CHANGED_THRESHOLD
         out.setdefault("changed_fraction", []).append(float(mask.mean()))
-        out.setdefault("changed_pixels", []).append(int(mask.sum()))
+        changed += int(mask.sum())
         if not mask.any():
             continue
         top = peak(gt["final"])
@@ -64,28 +65,29 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
                 out.setdefault(f"{key}_psnr_{layer}_tonemapped", []).append(psnr(a, b, mask))
                 pooled.setdefault(f"pooled_{key}_psnr_{layer}_tonemapped", []).append(
                     ((np.asarray(a, np.float64) - b) ** 2)[mask].ravel())
-    result = {k: float(np.mean(v)) for k, v in out.items() if k != "changed_pixels"}
-    result["changed_pixels"] = int(np.sum(out.get("changed_pixels", [0])))
-    result.update({k: mse_to_psnr(float(np.concatenate(v).mean())) for k, v in pooled.items()})
-    return result
+    return ({k: float(np.mean(v)) for k, v in out.items()} | {"changed_pixels": changed}
+            | {k: mse_to_psnr(float(np.concatenate(v).mean())) for k, v in pooled.items()})
+
+
+def _gain(changed: dict, key: str) -> float | None:
+    """The edited score minus the unedited one, ``key`` naming both with ``{kind}``; None where either is
+    missing."""
+    a, b = (changed.get(key.format(kind=kind)) for kind in ("edited", "unedited"))
+    return None if a is None or b is None else a - b
 
 
 def changed_region_pooled_gain(changed: dict) -> float | None:
     """The tonemapped gain in dB of the edited render over the unedited one on every view's changed pixels
     pooled (``pooled_<edited|unedited>_psnr_final_tonemapped``: one PSNR over all of them, each pixel weighing
     the same); None where the edit was scored before they existed or no pixel changed."""
-    a, b = changed.get("pooled_edited_psnr_final_tonemapped"), changed.get("pooled_unedited_psnr_final_tonemapped")
-    return None if a is None or b is None else a - b
+    return _gain(changed, "pooled_{kind}_psnr_final_tonemapped")
 
 
 def changed_region_gains(changed: dict) -> tuple[float | None, float | None]:
     """(tonemapped, linear) gain in dB of the edited render over the unedited one on the changed pixels (the
     ``changed_region`` of ``evaluate_edit``); None where the scores are missing (no pixel changed, or an edit
     scored before the tonemapped ones existed)."""
-    def gain(suffix: str) -> float | None:
-        a, b = changed.get(f"edited_psnr_final{suffix}"), changed.get(f"unedited_psnr_final{suffix}")
-        return None if a is None or b is None else a - b
-    return gain("_tonemapped"), gain("")
+    return _gain(changed, "{kind}_psnr_final_tonemapped"), _gain(changed, "{kind}_psnr_final")
 
 
 def evaluate_edit(capture: Capture, truth: Capture, renders: Path, baseline_renders: Path) -> dict:
