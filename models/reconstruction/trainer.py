@@ -428,10 +428,12 @@ class Trainer:
         if not len(rows):
             return
         ls = self.params["log_scales"]
-        lo, hi = (b.to(ls) for b in self._thickness_box)
-        factor = clearance_factors(self.params["means"][rows], self.params["quats"][rows], ls[rows], lo, hi,
+        # in float64, with the box as it was kept: rounded to float32, the box's face moved by ~1e-7 m, enough to
+        # leave a Gaussian 1 mm outside it 1e-4 of its margin short (a factor 0.99992 where 1 was due)
+        lo, hi = (b.to(device=ls.device, dtype=torch.float64) for b in self._thickness_box)
+        factor = clearance_factors(*(self.params[k][rows].double() for k in ("means", "quats", "log_scales")), lo, hi,
                                    self.config.far_field_margin, 1e-4 * self.scene_size)
-        ls[rows] += factor.log()[:, None]
+        ls[rows] += factor.log().to(ls.dtype)[:, None]
 
     @torch.no_grad()
     def _clamp(self) -> None:
