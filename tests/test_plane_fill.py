@@ -452,3 +452,150 @@ def test_the_relit_fill_is_its_planes_albedo_times_the_light_where_it_is():
     assert new[:-1][under].mean(0) == pytest.approx(albedo * 0.5, rel=0.1)  # 7x what the seen floor sends there
     np.testing.assert_array_equal(new[-1], old[-1])
     assert relight_plane_fill(None, fill, old, light)[1]["relit"] == 0
+
+
+def _turned(axis: np.ndarray, angle_deg: float, rng) -> np.ndarray:
+    """wxyz quaternions taking the local z axis to ``axis`` tilted by ``angle_deg`` about a random perpendicular,
+    with a random spin about it first."""
+    from models.reconstruction.anchors import quats_z_to
+    from models.gaussians.activations import quats_to_rotmats
+    n = len(axis)
+    side = np.cross(axis, rng.normal(size=(n, 3)))
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    a = np.radians(angle_deg)
+    tilted = np.cos(a) * axis + np.sin(a) * side
+    q = quats_z_to(torch.tensor(tilted, dtype=torch.float64))
+    spin = rng.uniform(0, 2 * np.pi, n)  # about the local z first: q * (cos s/2, 0, 0, sin s/2)
+    w, x, y, z = q.T.numpy()
+    c, s = np.cos(spin / 2), np.sin(spin / 2)
+    out = np.stack([w * c - z * s, x * c + y * s, y * c - x * s, z * c + w * s], 1)
+    assert np.allclose(quats_to_rotmats(torch.tensor(out))[:, :, 2].numpy(), tilted, atol=1e-9)
+    return out
+
+
+def test_the_initialisations_flat_gaussians_on_the_room_planes_are_held_facing_them(rays):
+    """plane_hold: the initialisation's Gaussians whose mean lies on a bounding plane and whose thin axis is within
+    25 degrees of its normal are turned to face it (thin axis = local z = the normal, thin scale last) and then held:
+    whatever training does, they stay facing it, within half the tolerance of where they were along the normal,
+    no thicker than they were, free along the plane. A Gaussian tilted 60 degrees on the floor, one in the air and
+    one on the table (not a bounding plane: the floor lies behind it) are not held."""
+    from models.gaussians.activations import quats_to_rotmats
+    from models.reconstruction.anchors import Anchors
+    from models.reconstruction.plane_fill import hold_on_planes
+
+    room = plane_fill_gaussians(rays, count=100000)[1]["room"]
+    rng = np.random.default_rng(3)
+    floor = np.stack([rng.uniform(-1.5, 1.5, 40), rng.uniform(-0.5, 0.5, 40) * room.tol, rng.uniform(-1.5, 1.5, 40)], 1)
+    metal = np.stack([2.0 + rng.uniform(-0.5, 0.5, 20) * room.tol, rng.uniform(0.2, 2.2, 20), rng.uniform(-1.5, 1.5, 20)], 1)
+    steep = np.stack([rng.uniform(-1.5, 1.5, 5), np.zeros(5), rng.uniform(-1.5, 1.5, 5)], 1)
+    air = np.stack([rng.uniform(-1, 1, 5), rng.uniform(0.5, 2.0, 5), rng.uniform(-1, 1, 5)], 1)
+    table = np.stack([rng.uniform(-0.5, 0.5, 5), np.full(5, 0.7), rng.uniform(-1.1, -0.5, 5)], 1)
+    pts = np.concatenate([floor, metal, steep, air, table])
+    up, side = np.tile([0.0, 1.0, 0.0], (len(pts), 1)), np.tile([-1.0, 0.0, 0.0], (len(pts), 1))
+    axis = np.where((np.arange(len(pts)) >= 40) & (np.arange(len(pts)) < 60), 1, 0)[:, None] * side + \
+        np.where((np.arange(len(pts)) >= 40) & (np.arange(len(pts)) < 60), 0, 1)[:, None] * up
+    axis[::7] *= -1  # the thin axis may point either way along the normal
+    tilt = np.concatenate([rng.uniform(0, 20, 60), np.full(5, 60.0), rng.uniform(0, 20, 10)])
+    quats = np.concatenate([_turned(axis[i:i + 1], tilt[i], rng) for i in range(len(pts))])
+    k = len(pts)
+    log_scales = np.log(np.stack([np.full(k, 0.03), np.full(k, 0.04), np.full(k, 0.006)], 1))
+    perm = rng.permuted(np.tile([0, 1, 2], (k, 1)), axis=1)  # the thin scale on any of the three local axes
+    # the local axes permuted with their scales: the same Gaussian, its thin axis still the tilted z above
+    rot = quats_to_rotmats(torch.tensor(quats)).numpy()
+    rot_p, ls_p = np.empty_like(rot), np.empty_like(log_scales)
+    for i in range(k):
+        rot_p[i][:, perm[i]] = rot[i]
+        ls_p[i][perm[i]] = log_scales[i]
+        if np.linalg.det(rot_p[i]) < 0:
+            rot_p[i][:, perm[i][0]] *= -1
+    from scipy.spatial.transform import Rotation
+    xyzw = Rotation.from_matrix(rot_p).as_quat()
+    init = Gaussians(means=torch.tensor(pts, dtype=torch.float32),
+                     quats=torch.tensor(np.concatenate([xyzw[:, 3:], xyzw[:, :3]], 1), dtype=torch.float32),
+                     log_scales=torch.tensor(ls_p, dtype=torch.float32), opacity_logits=torch.zeros(k),
+                     diffuse=torch.full((k, 3), 0.5), normals=torch.zeros(k, 3), roughness=torch.ones(k),
+                     f0=torch.zeros(k, 3))
+    held = hold_on_planes(room, init)
+    np.testing.assert_array_equal(held["rows"].numpy(), np.arange(60))
+    assert sorted(c for c in held["per_plane"] if c) == [20, 40] and held["depth"] == pytest.approx(0.5 * room.tol)
+    z = quats_to_rotmats(held["quats"])[:, :, 2].numpy()
+    normal = np.concatenate([np.tile([0.0, 1.0, 0.0], (40, 1)), np.tile([1.0, 0.0, 0.0], (20, 1))])
+    np.testing.assert_allclose(np.abs(z), normal, atol=1e-5)  # facing the plane exactly
+    assert np.all((z * axis[:60]).sum(1) > 0)  # on the side the thin axis pointed to
+    np.testing.assert_allclose(held["log_scales"].numpy(), np.log(np.tile([0.04, 0.03, 0.006], (60, 1))), rtol=1e-6)
+    # held by the anchors: training that turns, thickens and moves them anywhere is undone, but along the plane
+    anchors = Anchors(torch.device("cpu"))
+    cap = held["log_scales"].clone()
+    cap[:, :2] = float("inf")
+    anchors.hold(held["rows"], init.means[:60], held["quats"], torch.full((60,), held["depth"]),
+                 torch.full((60,), float("inf")), cap)
+    means, q, ls = init.means.clone(), init.quats.clone(), init.log_scales.clone()
+    q[:60], ls[:60] = held["quats"], held["log_scales"]
+    gen = torch.Generator().manual_seed(0)
+    moved = means + torch.randn(means.shape, generator=gen)
+    turned, thick = q + torch.randn(q.shape, generator=gen), ls + 2.0
+    target = moved.clone(), turned.clone(), thick.clone()
+    anchors.project(moved, turned, thick)
+    assert torch.equal(turned[:60], held["quats"]) and torch.equal(moved[60:], target[0][60:])
+    n_t = torch.tensor(normal, dtype=torch.float32)
+    offset = moved[:60] - init.means[:60]
+    along = (offset * n_t).sum(1)
+    assert along.abs().max() <= held["depth"] + 1e-6 and along.abs().max() >= 0.99 * held["depth"]
+    torch.testing.assert_close(offset - along[:, None] * n_t, (target[0][:60] - init.means[:60]) -
+                               ((target[0][:60] - init.means[:60]) * n_t).sum(1, keepdim=True) * n_t)  # free along it
+    torch.testing.assert_close(thick[:60, 2], held["log_scales"][:, 2])  # no thicker
+    torch.testing.assert_close(thick[:60, :2], held["log_scales"][:, :2] + 2.0)  # wider is free
+    assert hold_on_planes(None, init)["rows"].numel() == 0
+
+
+def test_plane_hold_keeps_the_initialisations_wall_gaussians_facing_their_wall_through_training():
+    """plane_hold in the trainer, on this room: an initialisation of thin Gaussians on the seen pixels, tilted up
+    to 20 degrees off their surface, is turned to face the walls, floor and ceiling (the table's and the opening's
+    stay free) and, trained at a learning rate that would tip them over, the held ones stay facing them and within
+    the hold's depth of where they were; the others move and turn freely. Off (the default), nothing is held."""
+    from models.capture import Capture, CaptureMeta
+    from models.gaussians.activations import quats_to_rotmats
+    from models.reconstruction import ReconstructConfig, Trainer
+    from models.tracer import Tracer, TracerConfig
+
+    views = _views()
+    rays = _rays(views)
+    src = pixel_points(rays, max_points=3000, seed=0)
+    k = len(src["points"])
+    rng = np.random.default_rng(5)
+    quats = np.concatenate([_turned(src["normals"][i:i + 1], rng.uniform(0, 20), rng) for i in range(k)])
+    init = Gaussians(means=torch.tensor(src["points"], dtype=torch.float32),
+                     quats=torch.tensor(quats, dtype=torch.float32),
+                     log_scales=torch.log(torch.tensor([[0.06, 0.06, 0.01]])).repeat(k, 1),
+                     opacity_logits=torch.full((k,), 2.0), diffuse=torch.tensor(src["diffuse"], dtype=torch.float32),
+                     normals=torch.tensor(src["normals"], dtype=torch.float32), roughness=torch.ones(k),
+                     f0=torch.zeros(k, 3))
+    capture = Capture(views, CaptureMeta(source="synthetic", extent=4.0))
+    tracer = Tracer(TracerConfig(num_threads=2))
+    base = dict(iterations=100, warmup=0, rays_per_step=512, far_field="off", prune_every=0)
+    assert len(Trainer(capture, init, ReconstructConfig(**base), tracer).anchors) == 0
+    trainer = Trainer(capture, init, ReconstructConfig(**base, plane_hold=True), tracer)
+    held = trainer.anchors.index
+    p = src["points"]
+    table = (np.abs(p[:, 1] - 0.7) < 0.01) & (np.abs(p[:, 0]) < 0.6)
+    assert 0.8 * k <= len(held) < k - table.sum() and not np.isin(np.nonzero(table)[0], held.numpy()).any()
+    assert any(d.startswith(f"plane hold: {len(held)} of the initialisation's {k} Gaussians") for d in trainer.decisions)
+    start = trainer.params["means"].detach().clone()
+    start_z = quats_to_rotmats(trainer.params["quats"].detach())[:, :, 2]
+    axis = trainer.anchors.axis.clone()
+    torch.testing.assert_close(start_z[held], axis, atol=1e-5, rtol=0)  # turned to face the plane at the start
+    for group in trainer.optimizer.param_groups:
+        group["lr"] *= 100 if group["name"] in ("log_scales", "quats") else 1
+    trainer.position_lr = lambda step: 100 * Trainer.position_lr(trainer, step)
+    for _ in range(5):
+        trainer.train_step()
+    means, quats = trainer.params["means"].detach(), trainer.params["quats"].detach()
+    z = quats_to_rotmats(quats)[:, :, 2]
+    torch.testing.assert_close(z[held], axis, atol=1e-5, rtol=0)  # still facing it
+    along = ((means[held] - start[held]) * axis).sum(1)
+    assert along.abs().max() <= trainer.anchors.depth_radius.max() + 1e-6
+    moved = (means - start).norm(dim=1)
+    assert moved[held].max() > 2 * trainer.anchors.depth_radius.max()  # free along the plane
+    free = torch.ones(k, dtype=torch.bool)  # the initialisation's others (the plane fill's follow them, frozen)
+    free[held] = False
+    assert (z[:k][free] * start_z[:k][free]).sum(1).abs().min() < 0.99  # they turn

@@ -70,11 +70,21 @@ class Anchors:
         quats = gaussians.quats.detach().to(**f)
         size = log_scales.amax(1).exp()
         spread = max(spread, depth)
+        self.hold(torch.arange(first, first + len(means), device=self.index.device), means, quats,
+                  depth * size, spread * size,
+                  log_scales + torch.tensor([math.log(spread), math.log(spread), math.log(depth)], **f))
+
+    def hold(self, index: torch.Tensor, centre: torch.Tensor, quats: torch.Tensor, depth_radius: torch.Tensor,
+             lateral_radius: torch.Tensor, max_log_scale: torch.Tensor) -> None:
+        """Anchor the parameters' rows ``index`` [M]: rotation ``quats`` [M, 4] (frozen), the mean within
+        ``depth_radius`` [M] of ``centre`` [M, 3] along the rotation's local z axis and within ``lateral_radius``
+        [M] (inf: free) across it, log-scales at most ``max_log_scale`` [M, 3] (inf: free)."""
+        f = dict(dtype=self.centre.dtype, device=self.centre.device)
+        quats = quats.to(**f)
         new = {
-            "index": torch.arange(first, first + len(means), device=self.index.device),
-            "centre": means, "quats": quats, "axis": quats_to_rotmats(quats)[:, :, 2],
-            "depth_radius": depth * size, "lateral_radius": spread * size,
-            "max_log_scale": log_scales + torch.tensor([math.log(spread), math.log(spread), math.log(depth)], **f),
+            "index": index.to(self.index.device), "centre": centre.to(**f), "quats": quats,
+            "axis": quats_to_rotmats(quats)[:, :, 2], "depth_radius": depth_radius.to(**f),
+            "lateral_radius": lateral_radius.to(**f), "max_log_scale": max_log_scale.to(**f),
         }
         for name in self.FIELDS:
             setattr(self, name, torch.cat([getattr(self, name), new[name]]))

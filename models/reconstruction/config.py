@@ -267,6 +267,17 @@ class ReconstructConfig:
                                  "(at 3, two seeds, with the walls the mirrors show closed: zoo_mirror_metal 28.57 "
                                  "vs 29.06 free, zoo_mirror_only 26.55 vs 26.79; anchors.py, README)",
                                  minimum=0)
+    plane_hold: bool = setting(False, "the initialisation's Gaussians that lie flat on a wall, the floor or the "
+                               "ceiling (a bounding plane of the plane fill's) face it and stay on it: rotation "
+                               "frozen, thin scale at most its initial one, the mean within plane_hold_depth x "
+                               "the plane tolerance of where it was along the normal, free along the plane "
+                               "(trained free, a few tilted and hung 0.2-0.3 m below zoo_corridor's ceiling, "
+                               "over its lights; plane_fill.hold_on_planes). Off by default: over nine zoo / demo "
+                               "pairs +0.07 dB, within the seed spread (corridor +0.44 / +0.13, mirror_metal +0.62, "
+                               "lshape +0.39, spheres -0.30, mirror_only -0.22, thin -0.22, demo -0.19, lamps "
+                               "+0.02; README, forty-fourth session)")
+    plane_hold_depth: float = setting(0.5, "with plane_hold: how far a held Gaussian's mean may move along its "
+                                      "plane's normal, x the plane tolerance (1 % of the room's size)", minimum=0)
     fill_matte: bool = setting(True, "mirror-stereo and reflection-fill Gaussians keep the matte material they "
                                "were made with (no buffer sees it; trained by the reflections' colour alone they "
                                "turned shiny in the air: zoo_mirror_only)")

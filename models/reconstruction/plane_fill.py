@@ -58,7 +58,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
+from models.gaussians.activations import normalize_quats, quats_to_rotmats
 
+from .anchors import quats_z_to
 from .reflection_fill import emitting_rays, seen_empty
 
 SCALE = 0.8  # the fill's Gaussians' scale, x the grid spacing: with opacity 0.9 a wall lets < 1 % through
@@ -547,3 +549,56 @@ def relight_plane_fill(room: Room | None, means: np.ndarray, diffuse: np.ndarray
     if gains:
         stats["gain"] = float(np.median(np.concatenate(gains)))
     return out, stats
+
+
+HOLD_COS = math.cos(math.radians(25.0))  # hold_on_planes: a Gaussian's thin axis within this of the plane's normal
+
+
+@torch.no_grad()
+def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float = 0.5) -> dict:
+    """The Gaussians of ``gaussians`` (the initialisation's) that lie flat on one of the room's bounding planes:
+    the mean within the room's tolerance of the plane (inside the other planes' half-spaces) and the thinnest
+    axis within 25 degrees of its normal. For the trainer's ``plane_hold``: they are turned to face the plane
+    exactly (the thin axis the local z, along the normal) and then held so, with their mean within
+    ``depth_factor`` x the tolerance of where it was along the normal (free along the plane) and their thin
+    scale at most what it was. Trained free, a few of them tilted and hung 0.2-0.3 m below zoo_corridor's ceiling
+    in front of its light strips (0.2 x 0.8 m, opacity 0.98): a test view looking up saw the strip at a fifth
+    of its radiance, and the metal walls reflected half its light (README, forty-third session).
+    Returns {"rows": [M] long, "quats": [M, 4] the turned rotations, "log_scales": [M, 3] with the thin one
+    last, "axis": [M, 3] the planes' normals, "depth": float, "per_plane": [count per bounding plane]}."""
+    f = dict(dtype=gaussians.dtype)
+    none = {"rows": torch.zeros(0, dtype=torch.long), "quats": torch.zeros((0, 4), **f),
+            "log_scales": torch.zeros((0, 3), **f), "axis": torch.zeros((0, 3), **f), "depth": 0.0, "per_plane": []}
+    if room is None or len(gaussians) == 0:
+        return none
+    p = gaussians.means.detach().double().cpu().numpy()
+    ls = gaussians.log_scales.detach().double().cpu()
+    rot = quats_to_rotmats(normalize_quats(gaussians.quats.detach().double().cpu()))
+    thin = ls.argmin(dim=1)
+    thin_axis = rot[torch.arange(len(p)), :, thin].numpy()  # [N, 3] each Gaussian's thinnest axis (a column)
+    taken = np.zeros(len(p), dtype=bool)
+    plane_of = np.full(len(p), -1)
+    per_plane = []
+    for i, (n, d, inl) in enumerate(room.bound):
+        if not len(inl):  # a wall placed by room_closing.py: nothing of the initialisation's lies on it
+            per_plane.append(0)
+            continue
+        sel = ~taken & (np.abs(p @ n - d) <= room.tol) & (np.abs(thin_axis @ n) >= HOLD_COS)
+        for j, (n2, d2, _) in enumerate(room.bound):
+            if j != i:
+                sel &= p @ n2 - d2 > -room.tol
+        plane_of[sel] = i
+        taken |= sel
+        per_plane.append(int(sel.sum()))
+    rows = np.nonzero(taken)[0]
+    if not len(rows):
+        return {**none, "per_plane": per_plane}
+    axis = np.stack([room.bound[i][0] for i in plane_of[rows]])
+    axis *= np.sign((thin_axis[rows] * axis).sum(1))[:, None]  # the normal on the side the thin axis points to
+    # the two wide scales kept, the thin one last (the local z the turned rotation puts on the normal)
+    sel = ls[torch.from_numpy(rows)]
+    order = torch.argsort(sel, dim=1, descending=True)
+    scales = torch.gather(sel, 1, order)
+    rows_t = torch.from_numpy(rows)
+    return {"rows": rows_t, "quats": quats_z_to(torch.from_numpy(axis)).to(**f), "log_scales": scales.to(**f),
+            "axis": torch.from_numpy(axis).to(**f), "depth": depth_factor * room.tol, "per_plane": per_plane}

@@ -42,7 +42,7 @@ from .hole_fill import decide as decide_hole_fill
 from .hole_fill import open_share, strided
 from .mirror_stereo import mirror_stereo_gaussians
 from .path_length import carried_throughput, going_on, needed_length
-from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, pixel_points, plane_fill_gaussians,
+from .plane_fill import (RELIGHT_SAMPLES, extend_plane_fill, hold_on_planes, pixel_points, plane_fill_gaussians,
                          relight_plane_fill, stereo_on_planes)
 from .sphere_fill import sphere_fill_gaussians
 from .sphere_snap import snap_spheres
@@ -117,6 +117,8 @@ class Trainer:
         self._one = torch.ones((), device=self.device)
         self.optimizer = self._make_optimizer()
         self.anchors = Anchors(self.device, self.params["means"].dtype)  # fill Gaussians kept near their placing
+        if config.plane_hold:  # the initialisation's Gaussians flat on a wall, the floor or the ceiling stay flat on it
+            self._hold_on_planes(len(self.params["means"]) - n_prior)
         # Gaussians a prior placed where no training view looks (plane_fill.py): never pruned for want of weight
         self.prior = torch.zeros(len(self.params["means"]), dtype=torch.bool, device=self.device)
         self.prior[len(self.prior) - n_prior:] = True
@@ -237,6 +239,30 @@ class Trainer:
         for note in stats.get("notes", ()):
             self.decisions.append(note)
         return fill
+
+    @torch.no_grad()
+    def _hold_on_planes(self, count: int) -> None:
+        """``plane_hold``: the first ``count`` Gaussians (the initialisation's) that lie flat on one of the room's
+        bounding planes turned to face it and anchored there (``plane_fill.hold_on_planes``)."""
+        init = Gaussians(**{k: v[:count].detach().cpu() for k, v in self.params.items()})
+        held = hold_on_planes(self._room, init, self.config.plane_hold_depth)
+        rows = held["rows"].to(self.device)
+        if len(rows):
+            self.params["quats"][rows] = held["quats"].to(self.params["quats"])
+            self.params["log_scales"][rows] = held["log_scales"].to(self.params["log_scales"])
+            free = torch.full((len(rows),), math.inf)
+            cap = held["log_scales"].clone()
+            cap[:, :2] = math.inf
+            self.anchors.hold(rows, self.params["means"][rows].clone(), held["quats"],
+                              torch.full((len(rows),), held["depth"]), free, cap)
+        if self._room is None:
+            self.decisions.append("plane hold: off, no bounding planes (the plane fill is off, plane_fill_count 0, "
+                                  "or found none in the buffers)")
+            return
+        planes = ", ".join(str(c) for c in held["per_plane"])
+        self.decisions.append(f"plane hold: {len(rows)} of the initialisation's {count} Gaussians lie flat on the "
+                              f"room's bounding planes ({planes} per plane); they face their plane, move along it "
+                              f"and stay within {held['depth']:.3g} of it")
 
     def _needs_far_field(self, init: Gaussians, closed: Gaussians) -> bool:
         """``init``: what the cameras saw (the mirror test); ``closed``: it with the plane fill (the view test)."""
