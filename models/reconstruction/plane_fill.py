@@ -564,11 +564,11 @@ def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float 
     scale at most what it was. Trained free, a few of them tilted and hung 0.2-0.3 m below zoo_corridor's ceiling
     in front of its light strips (0.2 x 0.8 m, opacity 0.98): a test view looking up saw the strip at a fifth
     of its radiance, and the metal walls reflected half its light (README, forty-third session).
-    Returns {"rows": [M] long, "quats": [M, 4] the turned rotations, "log_scales": [M, 3] with the thin one
-    last, "axis": [M, 3] the planes' normals, "depth": float, "per_plane": [count per bounding plane]}."""
+    Returns {"rows": [M] long, "quats": [M, 4] the turned rotations (local z = the plane's normal),
+    "log_scales": [M, 3] with the thin one last, "depth": float, "per_plane": [count per bounding plane]}."""
     f = dict(dtype=gaussians.dtype)
     none = {"rows": torch.zeros(0, dtype=torch.long), "quats": torch.zeros((0, 4), **f),
-            "log_scales": torch.zeros((0, 3), **f), "axis": torch.zeros((0, 3), **f), "depth": 0.0, "per_plane": []}
+            "log_scales": torch.zeros((0, 3), **f), "depth": 0.0, "per_plane": []}
     if room is None or len(gaussians) == 0:
         return none
     p = gaussians.means.detach().double().cpu().numpy()
@@ -596,9 +596,7 @@ def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float 
     axis = np.stack([room.bound[i][0] for i in plane_of[rows]])
     axis *= np.sign((thin_axis[rows] * axis).sum(1))[:, None]  # the normal on the side the thin axis points to
     # the two wide scales kept, the thin one last (the local z the turned rotation puts on the normal)
-    sel = ls[torch.from_numpy(rows)]
-    order = torch.argsort(sel, dim=1, descending=True)
-    scales = torch.gather(sel, 1, order)
     rows_t = torch.from_numpy(rows)
+    scales = ls[rows_t].sort(dim=1, descending=True).values
     return {"rows": rows_t, "quats": quats_z_to(torch.from_numpy(axis)).to(**f), "log_scales": scales.to(**f),
-            "axis": torch.from_numpy(axis).to(**f), "depth": depth_factor * room.tol, "per_plane": per_plane}
+            "depth": depth_factor * room.tol, "per_plane": per_plane}

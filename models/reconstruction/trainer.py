@@ -244,21 +244,20 @@ class Trainer:
     def _hold_on_planes(self, count: int) -> None:
         """``plane_hold``: the first ``count`` Gaussians (the initialisation's) that lie flat on one of the room's
         bounding planes turned to face it and anchored there (``plane_fill.hold_on_planes``)."""
+        if self._room is None:
+            self.decisions.append("plane hold: off, no bounding planes (the plane fill is off, plane_fill_count 0, "
+                                  "or found none in the buffers)")
+            return
         init = Gaussians(**{k: v[:count].detach().cpu() for k, v in self.params.items()})
         held = hold_on_planes(self._room, init, self.config.plane_hold_depth)
         rows = held["rows"].to(self.device)
         if len(rows):
             self.params["quats"][rows] = held["quats"].to(self.params["quats"])
             self.params["log_scales"][rows] = held["log_scales"].to(self.params["log_scales"])
-            free = torch.full((len(rows),), math.inf)
-            cap = held["log_scales"].clone()
+            cap = held["log_scales"].clone()  # the thin scale at most its initial one; the wide ones free
             cap[:, :2] = math.inf
             self.anchors.hold(rows, self.params["means"][rows].clone(), held["quats"],
-                              torch.full((len(rows),), held["depth"]), free, cap)
-        if self._room is None:
-            self.decisions.append("plane hold: off, no bounding planes (the plane fill is off, plane_fill_count 0, "
-                                  "or found none in the buffers)")
-            return
+                              torch.full((len(rows),), held["depth"]), torch.full((len(rows),), math.inf), cap)
         planes = ", ".join(str(c) for c in held["per_plane"])
         self.decisions.append(f"plane hold: {len(rows)} of the initialisation's {count} Gaussians lie flat on the "
                               f"room's bounding planes ({planes} per plane); they face their plane, move along it "
