@@ -832,15 +832,17 @@ def test_frozen_highlight_emitters_keep_their_geometry_and_are_not_relit(demo):
     assert bool((trainer.params["diffuse"].grad[rows] == 1).all())
 
 
-def test_highlight_emitters_on_a_wall_grow_at_most_the_growth_limit_also_after_a_checkpoint_and_a_prune(demo):
+@pytest.mark.parametrize("growth_all", [False, True])
+def test_highlight_emitters_on_a_wall_grow_at_most_the_growth_limit_also_after_a_checkpoint_and_a_prune(demo,
+                                                                                                        growth_all):
     """``highlight_max_growth``: each scale of the highlight fill's emitters that ``highlight_to_walls`` moved onto
-    a wall stays within that many times the median size the fill placed them all with (trained free, they grew
-    into sheets up to 0.9 m under the demo's ceiling, one over its lamp); the others, placed by the sweep alone
-    (zoo_corridor's, which training re-purposes), and every other Gaussian grow as before, and the limits follow
-    the rows through a prune and a checkpoint."""
+    a wall (with ``highlight_growth_all``: every emitter it placed) stays within that many times the median size
+    the fill placed them all with (trained free, they grew into sheets up to 0.9 m under the demo's ceiling, one
+    over its lamp); the others, placed by the sweep alone (zoo_corridor's, which training re-purposes), and every
+    other Gaussian grow as before, and the limits follow the rows through a prune and a checkpoint."""
     capture, init = demo
     cfg = dict(SMALL, iterations=12, warmup=10, prune_every=0, sphere_fill=False, highlight_max_growth=2.0,
-               highlight_to_walls=True)
+               highlight_to_walls=True, highlight_growth_all=growth_all)
     trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
     for _ in range(11):
         trainer.train_step()
@@ -848,9 +850,10 @@ def test_highlight_emitters_on_a_wall_grow_at_most_the_growth_limit_also_after_a
     added = int(line.split("added ")[1].split()[0])
     snapped = int(line.split("; ")[1].split()[0])  # "...; N moved onto a wall placed just beyond; ..."
     assert "moved onto a wall" in line.split("; ")[1], line
+    assert snapped < added, line  # emitters no wall took: growth_all caps them too
     n = len(trainer.prior)
     capped = torch.isfinite(trainer.scale_cap)
-    assert int(capped.sum()) == snapped and not bool(capped[:n - added].any())
+    assert int(capped.sum()) == (added if growth_all else snapped) and not bool(capped[:n - added].any())
     # a fill whose first and third Gaussians a wall took: only they get the limit, from the median of all
     extra = trainer.gaussians().subset(torch.arange(n - 4, n))
     rows = torch.tensor([True, False, True, False])

@@ -152,6 +152,58 @@ def test_highlight_fill_puts_emitters_on_the_plane_fill_where_highlights_end_on_
     assert torch.isfinite(lights.log_scales).all() and (lights.roughness == 1).all()
 
 
+def test_highlight_fill_on_the_plane_fill_leaves_out_a_highlight_among_dark_reflections(monkeypatch):
+    """``on_fill_purity``: the lamp's highlights ending on the unseen ceiling (x < -0.3) keep their emitters, but a
+    stray highlight among dark reflections there (a rough reflector's blurred highlight: x = -0.07, where the rest
+    of the fill's reflections are dark) gets none: of the reflections ending near it only 1 in 4 is a highlight.
+    Without the purity test it gets one."""
+    import models.reconstruction.reflection_fill as rf
+
+    monkeypatch.setattr(rf, "PURITY_RADIUS", 0.08)  # x the fill's 2 m: the mirror grid's next neighbours (0.145 m)
+    rays, x, scene, ceiling = _lamp_under_ceiling()
+    y = rays.origins[:, 1]
+    dark = (x.abs() <= 0.3)
+    rays.targets["specular"][dark] = 0.9 * 0.1  # dark reflections (below the lit surfaces' level)
+    stray = int(torch.nonzero((x > -0.1) & (x < 0) & (y > 0) & (y < 0.1)).reshape(-1)[0])
+    rays.targets["specular"][stray] = 0.9 * 10.0
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True,
+                                             on_fill_purity=0.5)
+    loose, loose_stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
+    lamp = int((x < -0.3).sum())
+    assert stats["on_fill"] == loose_stats["on_fill"] == lamp + 1
+    assert loose_stats["on_fill_added"] == lamp + 1 and loose_stats["on_fill_impure"] == 0
+    assert stats["on_fill_added"] == lamp and stats["on_fill_impure"] == 1
+    on = lights.means[stats["added"]:]
+    assert (on[:, 0] < -0.3).all() and (loose.means[loose_stats["added"]:, 0] > -0.1).sum() == 1
+
+
+def test_highlight_fill_on_the_plane_fill_puts_emitters_on_the_rooms_plane_under_the_fill():
+    """``on_fill_plane``: the emitters of highlights ending on the fill go where their rays cross the room's plane
+    the fill lies on (z = 0.95), ``PLANE_OFFSET`` x the fill's side in front of it, not at the fill's front (where a
+    grazing ray meets the fill's support, short of the plane); moved along the ray, a grazing ray's emitter moves
+    sideways too (``_onto_planes``); a plane the ray heads into, or one farther than ``near``, takes nothing."""
+    from models.reconstruction.reflection_fill import PLANE_OFFSET, _onto_planes
+
+    rays, x, scene, ceiling = _lamp_under_ceiling()
+    ceiling_plane = ((0.0, 0.0, 1.0), 0.95)
+    lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True,
+                                             on_fill_planes=[ceiling_plane, ((0.0, 0.0, -1.0), 0.9)])
+    front, front_stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
+    want = int((x < -0.3).sum())
+    assert stats["on_plane"] == stats["on_fill_added"] == want and front_stats["on_plane"] == 0
+    on, was = lights.means[stats["added"]:], front.means[front_stats["added"]:]
+    side = 2.0  # the fill (the ceiling Gaussians): y from -1 to 1
+    torch.testing.assert_close(on[:, 2], torch.full((want,), 0.95 - PLANE_OFFSET * side))
+    torch.testing.assert_close(on[:, :2], was[:, :2])  # straight up: the same place on the ceiling
+    r = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, 0.2], [1.0, 0.0, 0.2], [1.0, 0.0, -0.2]]), dim=-1)
+    pts = torch.tensor([[0.0, 0.0, 0.9], [0.0, 0.0, 0.5], [0.0, 0.0, 0.9]])
+    stats = {}
+    moved = _onto_planes(pts, r, [ceiling_plane], near=0.1, offset=0.01, stats=stats)
+    torch.testing.assert_close(moved[0], torch.tensor([0.04 / 0.2, 0.0, 0.94]))  # 0.2 m sideways
+    torch.testing.assert_close(moved[1:], pts[1:])  # 0.45 from the plane; heading away from it
+    assert stats["on_plane"] == 1
+
+
 def test_highlight_fill_puts_no_emitters_on_a_mirror_like_planes_fill():
     """A highlight that ends on the fill of a mirror-like plane (F0 0.9, roughness 0: zoo_corridor's metal walls'
     unseen parts) is that plane reflecting the light, not the light: with ``on_fill`` it gets no emitter, and it is

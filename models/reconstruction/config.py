@@ -236,6 +236,14 @@ class ReconstructConfig:
                                       "-0.9 dB, the other rooms within the spread; README, twenty-third session); "
                                       "with the fills of mirror-like planes left out (fortieth session) still "
                                       "below: zoo_corridor 23.11 -> 22.95, zoo_mirror_only 29.02 -> 28.94")
+    highlight_on_fill_purity: float = setting(0.0, "with highlight_on_fill: a highlight ending on the plane fill "
+                                              "gets its emitter only where at least this share of the reflections "
+                                              "ending near it on the fill (3 % of the room's size) are highlights "
+                                              "too, not dark ones (0: every one gets it)", minimum=0.0, maximum=1.0)
+    highlight_on_fill_plane: bool = setting(False, "with highlight_on_fill: the emitters go where their rays "
+                                            "cross the room's plane under the fill, not the fill's front (a few cm "
+                                            "short of it, so 10-20 cm short along a grazing ray: zoo_mirror_metal's "
+                                            "ceiling lamp got emitters up to 0.2 m past its rim)")
     highlight_to_walls: bool = setting(True, "highlight fill: an emitter the box sweep leaves at most two of its "
                                        "steps short of a wall room closing placed moves along its ray onto the "
                                        "wall (the sweep tells a lamp's distance to ~10 cm, the wall better: the "
@@ -252,6 +260,10 @@ class ReconstructConfig:
                                           "bounded, zoo_corridor's (placed by the sweep on the box's near edge, "
                                           "re-purposed by training) cost it 0.52 / 0.65 dB at seeds 0 / 1 "
                                           "(README, thirtieth and thirty-first sessions)", minimum=0.0)
+    highlight_growth_all: bool = setting(False, "highlight_max_growth holds every emitter the highlight fill "
+                                         "places, not only those highlight_to_walls moved onto a wall (an emitter "
+                                         "left in mid-air in front of a wall, as zoo_corridor's behind its cameras, "
+                                         "otherwise grows into a rod or a sheet)")
     highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "

@@ -31,6 +31,10 @@ from models.gaussians import Gaussians
 SHINY_F0 = 0.3
 SHINY_ROUGHNESS = 0.3
 HIGHLIGHT_BRIGHTNESS = 3.0  # a reflection this many times brighter than the views' lit surfaces shows a light
+PURITY_RADIUS = 0.03  # on_fill_purity: the neighbourhood of a highlight's end on the fill, x the fill's largest side
+PLANE_OFFSET = 0.002  # on_fill_plane: an emitter's distance in front of its plane, x the fill's largest side (1 cm
+# in a 5 m room; along a ray 15 degrees above the plane, 4 cm: the box step, 1/1000 of a box that may hold the far
+# field, is centimetres)
 ON_FILL_NOTE = 10  # highlight reflections ending on the plane fill from which the highlight fill notes it
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
@@ -257,6 +261,28 @@ def snap_to_planes(pos: torch.Tensor, r: torch.Tensor, planes: list, half: torch
     return moved
 
 
+def _onto_planes(front: torch.Tensor, r: torch.Tensor, planes: list, near: float, offset: float,
+                 stats: dict) -> torch.Tensor:
+    """``front`` [M, 3]: where highlight rays (unit directions ``r``) meet the plane fill's front; each that lies
+    within ``near`` of one of the room's ``planes`` ((n, s), n pointing out of the room) that its ray heads out
+    through moves along the ray to ``offset`` in front of that plane (the nearest such plane). The fill's front is
+    its Gaussians' support, a few cm short of the plane: a grazing ray meets it 10-20 cm short of where it crosses
+    the plane, so emitters placed there tile a patch beside the light (zoo_mirror_metal's ceiling lamp: up to
+    0.2 m past its rim, towards the mirror). ``stats["on_plane"]`` counts the moved."""
+    out = front.clone()
+    best = torch.full((len(front),), float("inf"), dtype=front.dtype, device=front.device)
+    for n, s in planes:
+        n = torch.as_tensor(np.asarray(n), dtype=front.dtype, device=front.device)
+        gap = float(s) - front @ n  # > 0: in front of the plane
+        rn = r @ n
+        take = (gap.abs() < near) & (rn > 0.05) & (gap.abs() < best)
+        t = (gap - offset) / rn.clamp_min(0.05)
+        out[take] = (front + t[:, None] * r)[take]
+        best = torch.where(take, gap.abs(), best)
+    stats["on_plane"] = int(torch.isfinite(best).sum())
+    return out
+
+
 def _note_beyond_known(pos: torch.Tensor, known: list, tol: float, stats: dict) -> None:
     """Counts (``stats["beyond_known"]``) the emitters ``pos`` [M, 3] that lie more than ``tol`` beyond one of the
     ``known`` planes ((n, s), n pointing out of the room) and notes the plane most of them passed."""
@@ -317,7 +343,9 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                              max_count: int = 4000, seed: int = 0,
                              dtype=torch.float32, fill: torch.Tensor | None = None,
                              on_fill: bool = False, walls: Gaussians | None = None,
-                             planes: list | None = None, known: list | None = None) -> tuple[Gaussians | None, dict]:
+                             planes: list | None = None, known: list | None = None,
+                             on_fill_purity: float = 0.0,
+                             on_fill_planes: list | None = None) -> tuple[Gaussians | None, dict]:
     """Emitters seen only in mirrors: one Gaussian per HIGHLIGHT mirror ray, where the light is.
 
     A light that no camera sees directly (a ceiling lamp above an orbit of cameras) has no Gaussians, and
@@ -347,6 +375,17 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     not count: a highlight that ends there is that plane reflecting the light (zoo_corridor's metal walls got
     emitters on their unseen parts: 23.11 -> 22.60; without them 22.95, README, fortieth session).
 
+    ``on_fill_purity`` > 0: a highlight that ends on the fill gets its emitter only where at least that share of
+    the reflections ending within ``PURITY_RADIUS`` x the fill's largest side of it are highlights too (the dark
+    ones blocked only by the fill traced as well), the sweep's rule on the plane: a light's patch gathers the
+    highlights of several views and few dark reflections, where a rough reflector's blurred highlights scatter
+    over ceiling its sharp mirrors show dark (``on_fill_impure`` counts those dropped).
+
+    ``on_fill_planes``: the room's planes as (n, s), n . p = s ON the plane (not ``planes``' grid spacing inside
+    it), n pointing out of the room; those emitters move along their rays from the fill's front onto the nearest
+    one within ``PURITY_RADIUS`` x the fill's largest side, ``PLANE_OFFSET`` x that
+    side in front of it (``_onto_planes``).
+
     ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where the
     mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight that
     would have left through them ends on them, so each light is placed once, on the room's planes, rather than
@@ -369,7 +408,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     to 0.84-0.92 of the truth, but no score rose (README, forty-first session)."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
              "box_scale_inside": False,
-             "on_fill": 0, "on_fill_added": 0, "snapped": 0, "snapped_rows": None, "beyond_known": 0,
+             "on_fill": 0, "on_fill_added": 0, "on_fill_impure": 0, "on_plane": 0, "snapped": 0, "snapped_rows": None,
+             "beyond_known": 0,
              "notes": []}
     t = rays.targets
     found = mirror_rays(rays, max_rays=len(rays), seed=seed)
@@ -401,20 +441,41 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
         # reflecting the light, not the light (zoo_corridor: emitters on its metal walls' unseen parts)
         fill = fill.to(gaussians.means.device) & ~shiny(gaussians.f0, gaussians.roughness.reshape(-1, 1))
     if fill is not None and bool(fill.any()):
-        blocked = torch.nonzero(bright & ~open_).reshape(-1)
+        purity = on_fill and on_fill_purity > 0
+        blocked = torch.nonzero((bright | purity) & ~open_).reshape(-1)  # with the purity test the dark ones too
         if len(blocked):
             rest = gaussians.subset(~fill.to(gaussians.means.device))
             without = trace_fn((x + step * r)[blocked], r[blocked], rest)
-            ends = blocked[(without.transmittance.reshape(-1) > 0.5).cpu()]
+            every = blocked[(without.transmittance.reshape(-1) > 0.5).cpu()]
+            ends = every[bright[every]]
             stats["on_fill"] = len(ends)
             if on_fill and len(ends):
                 ends = ends[torch.randperm(len(ends), generator=torch.Generator().manual_seed(seed + 3))[:max_count]]
-                start = x[ends] + step * r[ends]
-                hit = trace_fn(start, r[ends], gaussians.subset(fill.to(gaussians.means.device)))
+                dark = every[~bright[every]]
+                pick = torch.randperm(len(dark), generator=torch.Generator().manual_seed(seed + 4))
+                dark = dark[pick[:4 * max_count]]
+                both = torch.cat([ends, dark])
+                start = x[both] + step * r[both]
+                hit = trace_fn(start, r[both], gaussians.subset(fill.to(gaussians.means.device)))
                 front = (hit.front_depth if hit.front_depth is not None else hit.depth).reshape(-1).cpu()
                 met = (hit.transmittance.reshape(-1).cpu() < 0.5) & (front > step)
-                fill_pos = (start + (front - step)[:, None] * r[ends])[met]
-                fill_radiance = radiance[ends][met]
+                at = start + (front - step)[:, None] * r[both]
+                n_b = len(ends)
+                room = gaussians.means[fill.to(gaussians.means.device)].detach().cpu()
+                side = float((room.amax(0) - room.amin(0)).max())  # the room's size (the box may hold a far field)
+                if purity:
+                    radius = PURITY_RADIUS * side
+                    lit, unlit = at[:n_b][met[:n_b]], at[n_b:][met[n_b:]]
+                    near_lit = (torch.cdist(at[:n_b], lit) < radius).sum(1)
+                    near_dark = (torch.cdist(at[:n_b], unlit) < radius).sum(1) if len(unlit) else 0 * near_lit
+                    pure = near_lit >= on_fill_purity * (near_lit + near_dark)
+                    stats["on_fill_impure"] = int((met[:n_b] & ~pure).sum())
+                    met = torch.cat([met[:n_b] & pure, met[n_b:]])
+                if on_fill_planes:
+                    at[:n_b] = _onto_planes(at[:n_b], r[ends], on_fill_planes, PURITY_RADIUS * side,
+                                            PLANE_OFFSET * side, stats)
+                fill_pos = at[:n_b][met[:n_b]]
+                fill_radiance = radiance[ends][met[:n_b]]
         if stats["on_fill"] >= ON_FILL_NOTE and not on_fill:
             stats["notes"].append(
                 f"highlight fill: {stats['on_fill']} of {int(bright.sum())} highlight reflections end on the plane "

@@ -694,13 +694,18 @@ class Trainer:
             if cfg.highlight_fill:
                 later = [f[0] for f in (walls, grown, closed, planar) if f is not None and f[0] is not None]
 
+                room_planes = ([(n, s + self._room.h) for n, s in shown_planes(self._room) + placed_walls(self._room)]
+                               if cfg.highlight_on_fill_plane and self._room is not None else None)  # on the planes
+
                 def highlights(placed: list):
                     on = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in placed])
                           if placed and cfg.highlight_on_fill else None)  # the planes placed since warm-up
                     planes = placed_walls(self._room) if cfg.highlight_to_walls else None
                     return highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
                                                     fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=on,
-                                                    planes=planes, known=shown_planes(self._room))
+                                                    planes=planes, known=shown_planes(self._room),
+                                                    on_fill_purity=cfg.highlight_on_fill_purity,
+                                                    on_fill_planes=room_planes)
 
                 lights, stats = highlights(later)
                 behind = None
@@ -723,9 +728,12 @@ class Trainer:
                                "reflections (of %(mirror_rays)d mirror rays) end together (box scale %(box_scale).2f, "
                                "searched %(box_scale_range)s; %(snapped)d moved onto a wall placed just beyond; "
                                "%(inside)d moved in front of a wall placed; "
-                               "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there)",
+                               "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there, "
+                               "%(on_fill_impure)d left out among dark reflections, %(on_plane)d moved onto a room "
+                               "plane)",
                                prior=cfg.highlight_frozen, matte=cfg.highlight_frozen,
-                               growth=cfg.highlight_max_growth, growth_rows=stats["snapped_rows"])
+                               growth=cfg.highlight_max_growth,
+                               growth_rows=None if cfg.highlight_growth_all else stats["snapped_rows"])
                 if behind is not None:
                     self._add_fill(behind[0], behind[1], "%(added)d Gaussians on walls placed behind the lights the "
                                    "highlight fill found on the room's open sides: %(walls)s", prior=True)
