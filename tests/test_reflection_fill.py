@@ -181,8 +181,9 @@ def test_highlight_fill_on_the_plane_fill_puts_emitters_on_the_rooms_plane_under
     """``on_fill_plane``: the emitters of highlights ending on the fill go where their rays cross the room's plane
     the fill lies on (z = 0.95), ``PLANE_OFFSET`` x the fill's side in front of it, not at the fill's front (where a
     grazing ray meets the fill's support, short of the plane); moved along the ray, a grazing ray's emitter moves
-    sideways too (``_onto_planes``); a plane the ray heads into, or one farther than ``near``, takes nothing."""
-    from models.reconstruction.reflection_fill import PLANE_OFFSET, _onto_planes
+    sideways too (``snap_to_planes`` with the offset along the normal, from either side of the plane); a plane the
+    ray heads into, or one farther than the tolerance, takes nothing."""
+    from models.reconstruction.reflection_fill import PLANE_OFFSET
 
     rays, x, scene, ceiling = _lamp_under_ceiling()
     ceiling_plane = ((0.0, 0.0, 1.0), 0.95)
@@ -196,12 +197,13 @@ def test_highlight_fill_on_the_plane_fill_puts_emitters_on_the_rooms_plane_under
     torch.testing.assert_close(on[:, 2], torch.full((want,), 0.95 - PLANE_OFFSET * side))
     torch.testing.assert_close(on[:, :2], was[:, :2])  # straight up: the same place on the ceiling
     r = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, 0.2], [1.0, 0.0, 0.2], [1.0, 0.0, -0.2]]), dim=-1)
-    pts = torch.tensor([[0.0, 0.0, 0.9], [0.0, 0.0, 0.5], [0.0, 0.0, 0.9]])
-    stats = {}
-    moved = _onto_planes(pts, r, [ceiling_plane], near=0.1, offset=0.01, stats=stats)
+    pts = torch.tensor([[0.0, 0.0, 0.9], [0.0, 0.0, 0.5], [0.0, 0.0, 0.9], [0.0, 0.0, 0.97]])
+    r = torch.cat([r, r[:1]])
+    moved, took = snap_to_planes(pts, r, [ceiling_plane], 0.1, 0.01, past=0.1, offset_along_ray=False)
     torch.testing.assert_close(moved[0], torch.tensor([0.04 / 0.2, 0.0, 0.94]))  # 0.2 m sideways
-    torch.testing.assert_close(moved[1:], pts[1:])  # 0.45 from the plane; heading away from it
-    assert stats["on_plane"] == 1
+    torch.testing.assert_close(moved[1:3], pts[1:3])  # 0.45 from the plane; heading away from it
+    torch.testing.assert_close(moved[3], torch.tensor([-0.03 / 0.2, 0.0, 0.94]))  # 2 cm past it: back onto it
+    assert took.tolist() == [True, False, False, True]
 
 
 def test_highlight_fill_puts_no_emitters_on_a_mirror_like_planes_fill():
@@ -307,14 +309,16 @@ def test_snap_to_planes_takes_the_first_wall_ahead_within_the_tolerance():
     r = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.0, -1.0],
                                                     [1.0, 0.0, 0.0]]), dim=-1)
     planes = [(np.array([0.0, 0.0, 1.0]), 0.2), (np.array([1.0, 0.0, 0.0]), 0.1)]  # a ceiling, a near side wall
-    moved = snap_to_planes(pos, r, planes, torch.full((3,), 0.25), offset=0.0)
+    pos, moved = snap_to_planes(pos, r, planes, torch.full((3,), 0.25), offset=0.0)
     assert moved.tolist() == [True, True, False, True]  # the third heads away from both walls
     torch.testing.assert_close(pos[0], torch.tensor([0.0, 0.0, 0.2]))  # straight up onto the ceiling
     torch.testing.assert_close(pos[1], torch.tensor([0.1, 0.0, 0.1]))  # the side wall comes first on its ray
     torch.testing.assert_close(pos[2], torch.zeros(3))
     torch.testing.assert_close(pos[3], torch.tensor([0.1, 0.0, 0.0]))
     pos = torch.zeros(1, 3)
-    assert not snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.1), offset=0.0).any()  # 0.2 short: beyond 0.1
+    assert not snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.1), offset=0.0)[1].any()  # 0.2 short: > 0.1
+    pos = torch.tensor([[0.0, 0.0, 0.15]])  # 0.05 short along the ray, offset 0.1: stays, never moves back
+    torch.testing.assert_close(snap_to_planes(pos, r[:1], planes, torch.full((3,), 0.25), offset=0.1)[0], pos)
 
 
 def test_emitters_the_sweep_left_beyond_a_plane_the_buffers_show_are_reported():

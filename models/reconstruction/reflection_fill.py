@@ -242,45 +242,33 @@ SNAP_STEPS = 2    # an emitter this many sweep steps short of a placed wall move
 BEYOND_NOTE = 50  # emitters beyond a plane the buffers show, from which (and 10 % of them) a note says so
 
 
-def snap_to_planes(pos: torch.Tensor, r: torch.Tensor, planes: list, half: torch.Tensor,
-                   offset: float) -> torch.Tensor:
-    """Moves the points ``pos`` [M, 3] (in place) along their unit rays ``r`` onto the first of ``planes`` ((n, s):
-    n . p = s, n pointing out of the room) that they head to and lie short of by at most ``half`` [3] . |n|
-    (the tolerance along n), ``offset`` in front of it along the ray; returns which moved ([M] bool)."""
-    moved = torch.zeros(len(pos), dtype=torch.bool, device=pos.device)
+def snap_to_planes(pos: torch.Tensor, r: torch.Tensor, planes: list, before, offset: float, past: float = 0.0,
+                   offset_along_ray: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Moves the points ``pos`` [M, 3] along their unit rays ``r`` onto the one of ``planes`` ((n, s): n . p = s, n
+    pointing out of the room) that the ray heads out through and crosses nearest to the point, among those the point
+    lies short of by at most ``before`` (a float, or [3] per-axis tolerances taken as ``before`` . |n|) or past by
+    less than ``past``; it stops ``offset`` in front of the plane, measured along the ray (never moving back) with
+    ``offset_along_ray``, else along the normal. Returns the moved points (a new tensor) and which moved ([M] bool).
+
+    The highlight fill's sweep snaps the emitters it placed a little short of a wall onto it (along the ray,
+    nothing past the wall). ``on_fill_plane`` moves the emitters placed at the plane fill's front (its Gaussians'
+    support, a few cm short of the plane: a grazing ray meets it 10-20 cm short of where it crosses the plane, so
+    emitters placed there tile a patch beside the light, zoo_mirror_metal's ceiling lamp: up to 0.2 m past its
+    rim, towards the mirror) onto the plane under the fill, from either side, the offset along the normal."""
     best = torch.full((len(pos),), float("inf"), dtype=pos.dtype, device=pos.device)
+    step = torch.zeros(len(pos), dtype=pos.dtype, device=pos.device)
     for n, s in planes:
         n = torch.as_tensor(np.asarray(n), dtype=pos.dtype, device=pos.device)
-        short = float(s) - pos @ n  # > 0: the wall lies beyond the point
+        gap = float(s) - pos @ n  # > 0: the plane lies beyond the point
         cos = r @ n
-        t = short / cos.clamp_min(1e-6)
-        ok = (cos > 0.05) & (short > 0) & (short <= float(half @ n.abs())) & (t < best)
-        best = torch.where(ok, t, best)
-        moved |= ok
-    pos[moved] += (best[moved] - offset).clamp_min(0)[:, None] * r[moved]
-    return moved
-
-
-def _onto_planes(front: torch.Tensor, r: torch.Tensor, planes: list, near: float, offset: float,
-                 stats: dict) -> torch.Tensor:
-    """``front`` [M, 3]: where highlight rays (unit directions ``r``) meet the plane fill's front; each that lies
-    within ``near`` of one of the room's ``planes`` ((n, s), n pointing out of the room) that its ray heads out
-    through moves along the ray to ``offset`` in front of that plane (the nearest such plane). The fill's front is
-    its Gaussians' support, a few cm short of the plane: a grazing ray meets it 10-20 cm short of where it crosses
-    the plane, so emitters placed there tile a patch beside the light (zoo_mirror_metal's ceiling lamp: up to
-    0.2 m past its rim, towards the mirror). ``stats["on_plane"]`` counts the moved."""
-    out = front.clone()
-    best = torch.full((len(front),), float("inf"), dtype=front.dtype, device=front.device)
-    for n, s in planes:
-        n = torch.as_tensor(np.asarray(n), dtype=front.dtype, device=front.device)
-        gap = float(s) - front @ n  # > 0: in front of the plane
-        rn = r @ n
-        take = (gap.abs() < near) & (rn > 0.05) & (gap.abs() < best)
-        t = (gap - offset) / rn.clamp_min(0.05)
-        out[take] = (front + t[:, None] * r)[take]
-        best = torch.where(take, gap.abs(), best)
-    stats["on_plane"] = int(torch.isfinite(best).sum())
-    return out
+        t = gap / cos.clamp_min(0.05)  # along the ray to the plane
+        tol = float(before @ n.abs()) if torch.is_tensor(before) else float(before)
+        ok = (cos > 0.05) & (gap > -past) & (gap <= tol) & (t.abs() < best)
+        go = (t - offset).clamp_min(0) if offset_along_ray else (gap - offset) / cos.clamp_min(0.05)
+        best = torch.where(ok, t.abs(), best)
+        step = torch.where(ok, go, step)
+    moved = torch.isfinite(best)
+    return pos + step[:, None] * r, moved
 
 
 def _note_beyond_known(pos: torch.Tensor, known: list, tol: float, stats: dict) -> None:
@@ -384,7 +372,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     ``on_fill_planes``: the room's planes as (n, s), n . p = s ON the plane (not ``planes``' grid spacing inside
     it), n pointing out of the room; those emitters move along their rays from the fill's front onto the nearest
     one within ``PURITY_RADIUS`` x the fill's largest side, ``PLANE_OFFSET`` x that
-    side in front of it (``_onto_planes``).
+    side in front of it (``snap_to_planes``).
 
     ``walls``: more of the room's planes placed since warm-up (room closing's walls, the fill grown where the
     mirrors show the room), with ``on_fill`` traced as plane fill but not counted in the box: a highlight that
@@ -472,8 +460,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                     stats["on_fill_impure"] = int((met[:n_b] & ~pure).sum())
                     met = torch.cat([met[:n_b] & pure, met[n_b:]])
                 if on_fill_planes:
-                    at[:n_b] = _onto_planes(at[:n_b], r[ends], on_fill_planes, PURITY_RADIUS * side,
-                                            PLANE_OFFSET * side, stats)
+                    at[:n_b], on = snap_to_planes(at[:n_b], r[ends], on_fill_planes, PURITY_RADIUS * side,
+                                                  PLANE_OFFSET * side, past=PURITY_RADIUS * side,
+                                                  offset_along_ray=False)
+                    stats["on_plane"] = int(on.sum())
                 fill_pos = at[:n_b][met[:n_b]]
                 fill_radiance = radiance[ends][met[:n_b]]
         if stats["on_fill"] >= ON_FILL_NOTE and not on_fill:
@@ -500,7 +490,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
         if known:
             _note_beyond_known(pos, known, 2 * step, stats)
         if planes:
-            snapped = snap_to_planes(pos, r, planes, SNAP_STEPS * SWEEP_STEP * half, 2 * step).cpu()
+            pos, snapped = snap_to_planes(pos, r, planes, SNAP_STEPS * SWEEP_STEP * half, 2 * step)
+            snapped = snapped.cpu()
             stats["snapped"] = int(snapped.sum())
     else:
         radiance = radiance[:0]
