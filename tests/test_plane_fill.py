@@ -475,7 +475,8 @@ def _turned(axis: np.ndarray, angle_deg: float, rng) -> np.ndarray:
 
 def test_the_initialisations_flat_gaussians_on_the_room_planes_are_held_facing_them(rays):
     """plane_hold: the initialisation's Gaussians whose mean lies on a bounding plane and whose thin axis is within
-    25 degrees of its normal are turned to face it (thin axis = local z = the normal, thin scale last) and then held:
+    25 degrees of its normal are turned to face it by the smallest turn (thin axis = local z = the normal, thin scale
+    last, the wide axes where they pointed up to that turn) and then held:
     whatever training does, they stay facing it, within half the tolerance of where they were along the normal,
     no thicker than they were, free along the plane. A Gaussian tilted 60 degrees on the floor, one in the air and
     one on the table (not a bounding plane: the floor lies behind it) are not held."""
@@ -515,14 +516,24 @@ def test_the_initialisations_flat_gaussians_on_the_room_planes_are_held_facing_t
                      log_scales=torch.tensor(ls_p, dtype=torch.float32), opacity_logits=torch.zeros(k),
                      diffuse=torch.full((k, 3), 0.5), normals=torch.zeros(k, 3), roughness=torch.ones(k),
                      f0=torch.zeros(k, 3))
-    held = hold_on_planes(room, init)
+    round_ = Gaussians(means=init.means[40:45], quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 5),
+                       log_scales=torch.full((5, 3), float(np.log(0.03))), opacity_logits=torch.zeros(5),
+                       diffuse=torch.full((5, 3), 0.5), normals=torch.zeros(5, 3), roughness=torch.ones(5),
+                       f0=torch.zeros(5, 3))  # on the x wall, local x along its normal: no thin axis, not held
+    held = hold_on_planes(room, Gaussians.cat([init, round_]))
     np.testing.assert_array_equal(held["rows"].numpy(), np.arange(60))
     assert sorted(c for c in held["per_plane"] if c) == [20, 40] and held["depth"] == pytest.approx(0.5 * room.tol)
     z = quats_to_rotmats(held["quats"])[:, :, 2].numpy()
     normal = np.concatenate([np.tile([0.0, 1.0, 0.0], (40, 1)), np.tile([1.0, 0.0, 0.0], (20, 1))])
     np.testing.assert_allclose(np.abs(z), normal, atol=1e-5)  # facing the plane exactly
     assert np.all((z * axis[:60]).sum(1) > 0)  # on the side the thin axis pointed to
-    np.testing.assert_allclose(held["log_scales"].numpy(), np.log(np.tile([0.04, 0.03, 0.006], (60, 1))), rtol=1e-6)
+    np.testing.assert_allclose(held["log_scales"][:, 2].numpy(), np.log(np.full(60, 0.006)), rtol=1e-6)
+    np.testing.assert_allclose(held["log_scales"][:, :2].sort(dim=1).values.numpy(),
+                               np.log(np.tile([0.03, 0.04], (60, 1))), rtol=1e-6)
+    # the widest axis where it was, turned by no more than the thin axis was (the tilt, up to 20 degrees)
+    wide = quats_to_rotmats(held["quats"].double()).numpy()[np.arange(60), :, held["log_scales"][:, :2].argmax(1)]
+    was = rot_p[np.arange(60), :, ls_p[:60].argmax(1)]
+    assert np.all(np.abs((wide * was).sum(1)) >= np.cos(np.radians(20.5)))
     # held by the anchors: training that turns, thickens and moves them anywhere is undone, but along the plane
     anchors = Anchors(torch.device("cpu"))
     cap = held["log_scales"].clone()

@@ -456,7 +456,7 @@ def test_whole_first_window_from_inside_changes_no_output(kind):
 def _turned(gs: Gaussians, origins, dirs, flip):
     """The scene and rays negated along the axes where ``flip`` is -1: a point reflection (all three: each
     covariance unchanged) or a half turn about the remaining axis (two). The same image."""
-    from models.editing.ops import quat_multiply
+    from models.gaussians.activations import quat_multiply
 
     f = torch.tensor(flip, dtype=torch.float32)
     params = gs.params()

@@ -13,24 +13,13 @@ import math
 import torch
 
 from models.gaussians import Gaussians
+from models.gaussians.activations import quat_multiply
 from models.pathtrace.paths import PathConfig, TraceFn
 
 from .albedo import albedo_radiance
 from .spec import Op
 
 NEEDS_TRACER = frozenset({"set_albedo"})  # ops that trace the scene (apply_op passes them trace_fn and path)
-
-
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a * b, wxyz. [..., 4] x [..., 4] -> [..., 4] (rotation b first, then a)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
 
 
 def axis_angle_quat(axis, angle_deg: float, dtype=torch.float64) -> torch.Tensor:

@@ -27,6 +27,18 @@ def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
 
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a * b, wxyz. [..., 4] x [..., 4] -> [..., 4] (rotation b first, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], dim=-1)
+
+
 def scales_from_log(log_scales: torch.Tensor) -> torch.Tensor:
     """Standard deviations along the local axes. [N, 3] -> [N, 3]."""
     return torch.exp(log_scales)

@@ -58,9 +58,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
-from models.gaussians.activations import normalize_quats, quats_to_rotmats
+from models.gaussians.activations import normalize_quats, quat_multiply, quats_to_rotmats
 
-from .anchors import quats_z_to
 from .reflection_fill import emitting_rays, seen_empty
 
 SCALE = 0.8  # the fill's Gaussians' scale, x the grid spacing: with opacity 0.9 a wall lets < 1 % through
@@ -552,20 +551,27 @@ def relight_plane_fill(room: Room | None, means: np.ndarray, diffuse: np.ndarray
 
 
 HOLD_COS = math.cos(math.radians(25.0))  # hold_on_planes: a Gaussian's thin axis within this of the plane's normal
+HOLD_FLAT = math.log(1.25)  # hold_on_planes: a thin axis at least 1.25x thinner than the next (a round one has none)
+# the rotation that puts local axes (t+1, t+2, t) of a frame on its local x, y, z (a cyclic turn about (1, 1, 1))
+_THIN_LAST = torch.tensor([[0.5, 0.5, 0.5, 0.5], [0.5, -0.5, -0.5, -0.5], [1.0, 0.0, 0.0, 0.0]],
+                          dtype=torch.float64)
 
 
 @torch.no_grad()
 def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float = 0.5) -> dict:
     """The Gaussians of ``gaussians`` (the initialisation's) that lie flat on one of the room's bounding planes:
     the mean within the room's tolerance of the plane (inside the other planes' half-spaces) and the thinnest
-    axis within 25 degrees of its normal. For the trainer's ``plane_hold``: they are turned to face the plane
-    exactly (the thin axis the local z, along the normal) and then held so, with their mean within
+    axis within 25 degrees of its normal (a thin axis: at least 1.25x thinner than the next; a round Gaussian has
+    none). For the trainer's ``plane_hold``: they are turned to face the plane exactly, by the smallest turn that
+    takes the thin axis onto the normal (the wide axes keep their directions in the plane), the local axes
+    renamed so that the thin one is the local z, and then held so, with their mean within
     ``depth_factor`` x the tolerance of where it was along the normal (free along the plane) and their thin
     scale at most what it was. Trained free, a few of them tilted and hung 0.2-0.3 m below zoo_corridor's ceiling
     in front of its light strips (0.2 x 0.8 m, opacity 0.98): a test view looking up saw the strip at a fifth
     of its radiance, and the metal walls reflected half its light (README, forty-third session).
     Returns {"rows": [M] long, "quats": [M, 4] the turned rotations (local z = the plane's normal),
-    "log_scales": [M, 3] with the thin one last, "depth": float, "per_plane": [count per bounding plane]}."""
+    "log_scales": [M, 3] with the thin one last (the wide ones in the order of their axes), "depth": float,
+    "per_plane": [count per bounding plane]}."""
     f = dict(dtype=gaussians.dtype)
     none = {"rows": torch.zeros(0, dtype=torch.long), "quats": torch.zeros((0, 4), **f),
             "log_scales": torch.zeros((0, 3), **f), "depth": 0.0, "per_plane": []}
@@ -573,8 +579,11 @@ def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float 
         return none
     p = gaussians.means.detach().double().cpu().numpy()
     ls = gaussians.log_scales.detach().double().cpu()
-    rot = quats_to_rotmats(normalize_quats(gaussians.quats.detach().double().cpu()))
+    quats = normalize_quats(gaussians.quats.detach().double().cpu())
+    rot = quats_to_rotmats(quats)
     thin = ls.argmin(dim=1)
+    ordered = ls.sort(dim=1).values
+    flat = (ordered[:, 1] - ordered[:, 0] >= HOLD_FLAT).numpy()
     thin_axis = rot[torch.arange(len(p)), :, thin].numpy()  # [N, 3] each Gaussian's thinnest axis (a column)
     taken = np.zeros(len(p), dtype=bool)
     plane_of = np.full(len(p), -1)
@@ -583,7 +592,7 @@ def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float 
         if not len(inl):  # a wall placed by room_closing.py: nothing of the initialisation's lies on it
             per_plane.append(0)
             continue
-        sel = ~taken & (np.abs(p @ n - d) <= room.tol) & (np.abs(thin_axis @ n) >= HOLD_COS)
+        sel = ~taken & flat & (np.abs(p @ n - d) <= room.tol) & (np.abs(thin_axis @ n) >= HOLD_COS)
         for j, (n2, d2, _) in enumerate(room.bound):
             if j != i:
                 sel &= p @ n2 - d2 > -room.tol
@@ -595,8 +604,14 @@ def hold_on_planes(room: Room | None, gaussians: Gaussians, depth_factor: float 
         return {**none, "per_plane": per_plane}
     axis = np.stack([room.bound[i][0] for i in plane_of[rows]])
     axis *= np.sign((thin_axis[rows] * axis).sum(1))[:, None]  # the normal on the side the thin axis points to
-    # the two wide scales kept, the thin one last (the local z the turned rotation puts on the normal)
     rows_t = torch.from_numpy(rows)
-    scales = ls[rows_t].sort(dim=1, descending=True).values
-    return {"rows": rows_t, "quats": quats_z_to(torch.from_numpy(axis)).to(**f), "log_scales": scales.to(**f),
+    # the shortest arc from the thin axis to the normal (within 25 degrees: never opposite), after the Gaussian's
+    # own rotation and the renaming of its axes that puts the thin one last
+    u, v = torch.from_numpy(thin_axis[rows]), torch.from_numpy(axis)
+    arc = normalize_quats(torch.cat([1 + (u * v).sum(1, keepdim=True), torch.cross(u, v, dim=1)], dim=1))
+    t = thin[rows_t]
+    turned = quat_multiply(arc, quat_multiply(quats[rows_t], _THIN_LAST[t]))
+    perm = torch.stack([(t + 1) % 3, (t + 2) % 3, t], dim=1)
+    scales = torch.gather(ls[rows_t], 1, perm)
+    return {"rows": rows_t, "quats": normalize_quats(turned).to(**f), "log_scales": scales.to(**f),
             "depth": depth_factor * room.tol, "per_plane": per_plane}
