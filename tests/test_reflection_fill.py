@@ -177,6 +177,23 @@ def test_highlight_fill_on_the_plane_fill_leaves_out_a_highlight_among_dark_refl
     assert (on[:, 0] < -0.3).all() and (loose.means[loose_stats["added"]:, 0] > -0.1).sum() == 1
 
 
+def test_the_on_fill_purity_weighs_highlights_and_dark_reflections_drawn_at_their_own_rates(monkeypatch):
+    """``on_fill_purity`` compares the highlights and the dark reflections that end near an emitter; the two are
+    drawn down to ``max_count`` and 4 x ``max_count`` at their own rates, so each counts for the share it stands
+    for. The lamp on the unseen ceiling with a wide neighbourhood (0.4 m: its rim sees the dark reflections beside
+    it): every lamp end is pure with all 48 drawn, and still with 20 drawn (unweighted, the
+    20 counted against all 24 dark ones left 3 of them out)."""
+    import models.reconstruction.reflection_fill as rf
+
+    monkeypatch.setattr(rf, "PURITY_RADIUS", 0.2)
+    for max_count, placed in [(4000, 48), (20, 20), (12, 12)]:
+        rays, x, scene, ceiling = _lamp_under_ceiling()
+        rays.targets["specular"][x.abs() <= 0.3] = 0.9 * 0.1  # dark reflections beside the lamp
+        _, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True,
+                                            on_fill_purity=0.5, max_count=max_count)
+        assert stats["on_fill"] == 48 and stats["on_fill_impure"] == 0 and stats["on_fill_added"] == placed
+
+
 def test_highlight_fill_on_the_plane_fill_puts_emitters_on_the_rooms_plane_under_the_fill():
     """``on_fill_plane``: the emitters of highlights ending on the fill go where their rays cross the room's plane
     the fill lies on (z = 0.95), ``PLANE_OFFSET`` x the fill's side in front of it, not at the fill's front (where a

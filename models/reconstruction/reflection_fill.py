@@ -441,7 +441,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                 ends = ends[torch.randperm(len(ends), generator=torch.Generator().manual_seed(seed + 3))[:max_count]]
                 dark = every[~bright[every]]
                 pick = torch.randperm(len(dark), generator=torch.Generator().manual_seed(seed + 4))
-                dark = dark[pick[:4 * max_count]]
+                # each kept end stands for this many (the two drawn at their own rates): the purity's share weighs them
+                drawn = pick[:4 * max_count]
+                weight_lit, weight_dark = stats["on_fill"] / len(ends), len(dark) / max(len(drawn), 1)
+                dark = dark[drawn]
                 both = torch.cat([ends, dark])
                 start = x[both] + step * r[both]
                 hit = trace_fn(start, r[both], gaussians.subset(fill.to(gaussians.means.device)))
@@ -456,14 +459,15 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                     lit, unlit = at[:n_b][met[:n_b]], at[n_b:][met[n_b:]]
                     near_lit = (torch.cdist(at[:n_b], lit) < radius).sum(1)
                     near_dark = (torch.cdist(at[:n_b], unlit) < radius).sum(1) if len(unlit) else 0 * near_lit
-                    pure = near_lit >= on_fill_purity * (near_lit + near_dark)
+                    lit_share, dark_share = weight_lit * near_lit, weight_dark * near_dark
+                    pure = lit_share >= on_fill_purity * (lit_share + dark_share)
                     stats["on_fill_impure"] = int((met[:n_b] & ~pure).sum())
                     met = torch.cat([met[:n_b] & pure, met[n_b:]])
                 if on_fill_planes:
                     at[:n_b], on = snap_to_planes(at[:n_b], r[ends], on_fill_planes, PURITY_RADIUS * side,
                                                   PLANE_OFFSET * side, past=PURITY_RADIUS * side,
                                                   offset_along_ray=False)
-                    stats["on_plane"] = int(on.sum())
+                    stats["on_plane"] = int((on & met[:n_b]).sum())  # among those placed
                 fill_pos = at[:n_b][met[:n_b]]
                 fill_radiance = radiance[ends][met[:n_b]]
         if stats["on_fill"] >= ON_FILL_NOTE and not on_fill:

@@ -694,13 +694,13 @@ class Trainer:
             if cfg.highlight_fill:
                 later = [f[0] for f in (walls, grown, closed, planar) if f is not None and f[0] is not None]
 
-                room_planes = ([(n, s + self._room.h) for n, s in shown_planes(self._room) + placed_walls(self._room)]
-                               if cfg.highlight_on_fill_plane and self._room is not None else None)  # on the planes
-
                 def highlights(placed: list):
                     on = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in placed])
                           if placed and cfg.highlight_on_fill else None)  # the planes placed since warm-up
                     planes = placed_walls(self._room) if cfg.highlight_to_walls else None
+                    room_planes = ([(n, s + self._room.h) for n, s in shown_planes(self._room) +
+                                    placed_walls(self._room)]  # ON the planes, the walls placed behind lights too
+                                   if cfg.highlight_on_fill_plane and self._room is not None else None)
                     return highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
                                                     fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=on,
                                                     planes=planes, known=shown_planes(self._room),
