@@ -563,7 +563,7 @@ def test_plane_hold_keeps_the_initialisations_wall_gaussians_facing_their_wall_t
     """plane_hold in the trainer, on this room: an initialisation of thin Gaussians on the seen pixels, tilted up
     to 20 degrees off their surface, is turned to face the walls, floor and ceiling (the table's and the opening's
     stay free) and, trained at a learning rate that would tip them over, the held ones stay facing them and within
-    the hold's depth of where they were; the others move and turn freely. Off (the default), nothing is held."""
+    the hold's depth of where they were; the others move and turn freely (on by default). Off, nothing is held."""
     from models.capture import Capture, CaptureMeta
     from models.gaussians.activations import quats_to_rotmats
     from models.reconstruction import ReconstructConfig, Trainer
@@ -584,8 +584,9 @@ def test_plane_hold_keeps_the_initialisations_wall_gaussians_facing_their_wall_t
     capture = Capture(views, CaptureMeta(source="synthetic", extent=4.0))
     tracer = Tracer(TracerConfig(num_threads=2))
     base = dict(iterations=100, warmup=0, rays_per_step=512, far_field="off", prune_every=0)
-    assert len(Trainer(capture, init, ReconstructConfig(**base), tracer).anchors) == 0
-    trainer = Trainer(capture, init, ReconstructConfig(**base, plane_hold=True), tracer)
+    assert len(Trainer(capture, init, ReconstructConfig(**base, plane_hold=False), tracer).anchors) == 0
+    assert ReconstructConfig().plane_hold
+    trainer = Trainer(capture, init, ReconstructConfig(**base), tracer)
     held = trainer.anchors.index
     p = src["points"]
     table = (np.abs(p[:, 1] - 0.7) < 0.01) & (np.abs(p[:, 0]) < 0.6)

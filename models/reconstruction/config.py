@@ -229,18 +229,19 @@ class ReconstructConfig:
                                       "thirty-first session) demo +0.25 / +0.64, zoo_spheres +0.06 / +0.15; rooms "
                                       "where closing places no wall are untouched (README)")
     highlight_fill: bool = setting(True, "with the far field: emitters seen only in mirrors (reflection_fill.py)")
-    highlight_on_fill: bool = setting(False, "highlight fill: a highlight reflection that ends on the plane fill "
+    highlight_on_fill: bool = setting(True, "highlight fill: a highlight reflection that ends on the plane fill "
                                       "or on a wall placed after warm-up (a light on an unseen part of the room's "
-                                      "planes: a ceiling lamp behind the cameras) gets an emitter there, at the "
-                                      "plane's front. Off: measured worse at two seeds (zoo_mirror_only -0.5 to "
-                                      "-0.9 dB, the other rooms within the spread; README, twenty-third session); "
-                                      "with the fills of mirror-like planes left out (fortieth session) still "
-                                      "below: zoo_corridor 23.11 -> 22.95, zoo_mirror_only 29.02 -> 28.94")
+                                      "planes: a ceiling lamp behind the cameras) gets an emitter there. Alone "
+                                      "it lost (zoo_mirror_only -0.5 to -0.9 dB, twenty-third session; "
+                                      "zoo_corridor -0.16, fortieth); with highlight_on_fill_plane, "
+                                      "highlight_growth_all and plane_hold (defaults since the forty-ninth "
+                                      "session) ten two-seed zoo pairs +0.25 dB (corridor +1.23 / +0.86, "
+                                      "mirror_metal -0.73 / +0.64, lshape +0.64 / +0.17; README, forty-eighth)")
     highlight_on_fill_purity: float = setting(0.0, "with highlight_on_fill: a highlight ending on the plane fill "
                                               "gets its emitter only where at least this share of the reflections "
                                               "ending near it on the fill (3 % of the room's size) are highlights "
                                               "too, not dark ones (0: every one gets it)", minimum=0.0, maximum=1.0)
-    highlight_on_fill_plane: bool = setting(False, "with highlight_on_fill: the emitters go where their rays "
+    highlight_on_fill_plane: bool = setting(True, "with highlight_on_fill: the emitters go where their rays "
                                             "cross the room's plane under the fill, not the fill's front (a few cm "
                                             "short of it, so 10-20 cm short along a grazing ray: zoo_mirror_metal's "
                                             "ceiling lamp got emitters up to 0.2 m past its rim)")
@@ -260,10 +261,10 @@ class ReconstructConfig:
                                           "bounded, zoo_corridor's (placed by the sweep on the box's near edge, "
                                           "re-purposed by training) cost it 0.52 / 0.65 dB at seeds 0 / 1 "
                                           "(README, thirtieth and thirty-first sessions)", minimum=0.0)
-    highlight_growth_all: bool = setting(False, "highlight_max_growth holds every emitter the highlight fill "
+    highlight_growth_all: bool = setting(True, "highlight_max_growth holds every emitter the highlight fill "
                                          "places, not only those highlight_to_walls moved onto a wall (an emitter "
                                          "left in mid-air in front of a wall, as zoo_corridor's behind its cameras, "
-                                         "otherwise grows into a rod or a sheet)")
+                                         "otherwise grows into a rod or a sheet; off: only the wall ones)")
     highlight_frozen: bool = setting(False, "the highlight fill's emitters keep the place and size they were given "
                                      "(the plane fill's priors' rule) and their matte material (the mirror fills' "
                                      "rule); colour and opacity train. Trained free, those off the light dimmed and "
@@ -279,15 +280,14 @@ class ReconstructConfig:
                                  "(at 3, two seeds, with the walls the mirrors show closed: zoo_mirror_metal 28.57 "
                                  "vs 29.06 free, zoo_mirror_only 26.55 vs 26.79; anchors.py, README)",
                                  minimum=0)
-    plane_hold: bool = setting(False, "the initialisation's Gaussians that lie flat on a wall, the floor or the "
+    plane_hold: bool = setting(True, "the initialisation's Gaussians that lie flat on a wall, the floor or the "
                                "ceiling (a bounding plane of the plane fill's) face it and stay on it: rotation "
                                "frozen, thin scale at most its initial one, the mean within plane_hold_depth x "
                                "the plane tolerance of where it was along the normal, free along the plane "
                                "(trained free, a few tilted and hung 0.2-0.3 m below zoo_corridor's ceiling, "
-                               "over its lights; plane_fill.hold_on_planes). Off by default: over nine zoo / demo "
-                               "pairs +0.07 dB, within the seed spread (corridor +0.44 / +0.13, mirror_metal +0.62, "
-                               "lshape +0.39, spheres -0.30, mirror_only -0.22, thin -0.22, demo -0.19, lamps "
-                               "+0.02; README, forty-fourth session)")
+                               "over its lights; plane_fill.hold_on_planes). Alone over nine zoo / demo pairs "
+                               "+0.07 dB, within the seed spread (forty-fourth session); with the highlight "
+                               "on-fill settings the default since the forty-ninth (README, forty-eighth)")
     plane_hold_depth: float = setting(0.5, "with plane_hold: how far a held Gaussian's mean may move along its "
                                       "plane's normal, x the plane tolerance (1 % of the room's size)", minimum=0)
     fill_matte: bool = setting(True, "mirror-stereo and reflection-fill Gaussians keep the matte material they "

@@ -356,9 +356,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     dim colour (README, nineteenth session: zoo_corridor's ceiling strips kept emitters only on the part the
     cameras see). With ``on_fill`` each of them gets an emitter too, where the ray meets the fill (its front,
     ``front_depth``, traced through the fill alone), one box step short of it: the plane gives the light's
-    distance, so no sweep is needed, and the emitters of different views land on the same patch. Off by default
-    (``reconstruct.highlight_on_fill``: measured worse at two seeds, zoo_mirror_only -0.5 to -0.9 dB, whether
-    its light was placed twice or, with ``walls``, once on its ceiling; README, twenty-third session). Without
+    distance, so no sweep is needed, and the emitters of different views land on the same patch. Off here by
+    default; the trainer's ``reconstruct.highlight_on_fill`` is on since the forty-ninth session (alone it
+    measured worse, zoo_mirror_only -0.5 to -0.9 dB at two seeds, README twenty-third session; with the plane
+    snap ``planes``, highlight_growth_all and plane_hold ten two-seed zoo pairs +0.25 dB, forty-eighth). Without
     it, from ``ON_FILL_NOTE`` of them, a note says they got none. The fill of a mirror-like plane (``shiny``) does
     not count: a highlight that ends there is that plane reflecting the light (zoo_corridor's metal walls got
     emitters on their unseen parts: 23.11 -> 22.60; without them 22.95, README, fortieth session).
