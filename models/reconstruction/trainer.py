@@ -261,7 +261,8 @@ class Trainer:
         planes = ", ".join(str(c) for c in held["per_plane"])
         self.decisions.append(f"plane hold: {len(rows)} of the initialisation's {count} Gaussians lie flat on the "
                               f"room's bounding planes ({planes} per plane); they face their plane, move along it "
-                              f"and stay within {held['depth']:.3g} of it")
+                              f"and stay within {100 * held['depth'] / self.extent:.2f} % of the scene's extent "
+                              "of it")
 
     def _needs_far_field(self, init: Gaussians, closed: Gaussians) -> bool:
         """``init``: what the cameras saw (the mirror test); ``closed``: it with the plane fill (the view test)."""
@@ -698,12 +699,13 @@ class Trainer:
                     on = (Gaussians.cat([g.to(scene.device, scene.dtype) for g in placed])
                           if placed and cfg.highlight_on_fill else None)  # the planes placed since warm-up
                     planes = placed_walls(self._room) if cfg.highlight_to_walls else None
-                    room_planes = ([(n, s + self._room.h) for n, s in shown_planes(self._room) +
-                                    placed_walls(self._room)]  # ON the planes, the walls placed behind lights too
+                    known = shown_planes(self._room)
+                    room_planes = ([(n, s + self._room.h) for n, s in known + placed_walls(self._room)]
+                                   # ON the planes, the walls placed behind lights too
                                    if cfg.highlight_on_fill_plane and self._room is not None else None)
                     return highlight_fill_gaussians(self.rays, self.backend.trace, scene, seed=cfg.seed,
                                                     fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=on,
-                                                    planes=planes, known=shown_planes(self._room),
+                                                    planes=planes, known=known,
                                                     on_fill_purity=cfg.highlight_on_fill_purity,
                                                     on_fill_planes=room_planes)
 
