@@ -235,8 +235,9 @@ class ReconstructConfig:
                                       "it lost (zoo_mirror_only -0.5 to -0.9 dB, twenty-third session; "
                                       "zoo_corridor -0.16, fortieth); with highlight_on_fill_plane, "
                                       "highlight_growth_all and plane_hold (defaults since the forty-ninth "
-                                      "session) ten two-seed zoo pairs +0.25 dB (corridor +1.23 / +0.86, "
-                                      "mirror_metal -0.73 / +0.64, lshape +0.64 / +0.17; README, forty-eighth)")
+                                      "session) fourteen zoo pairs (every room, seeds 0 / 1) +0.20 dB (corridor "
+                                      "+1.23 / +0.86, mirror_metal -0.73 / +0.64, lshape +0.64 / +0.17), the "
+                                      "demo -0.31 / 0.00 (README, forty-eighth and forty-ninth sessions)")
     highlight_on_fill_purity: float = setting(0.0, "with highlight_on_fill: a highlight ending on the plane fill "
                                               "gets its emitter only where at least this share of the reflections "
                                               "ending near it on the fill (3 % of the room's size) are highlights "

@@ -359,7 +359,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     distance, so no sweep is needed, and the emitters of different views land on the same patch. Off here by
     default; the trainer's ``reconstruct.highlight_on_fill`` is on since the forty-ninth session (alone it
     measured worse, zoo_mirror_only -0.5 to -0.9 dB at two seeds, README twenty-third session; with the plane
-    snap ``planes``, highlight_growth_all and plane_hold ten two-seed zoo pairs +0.25 dB, forty-eighth). Without
+    snap ``planes``, highlight_growth_all and plane_hold fourteen zoo pairs +0.20 dB, forty-ninth). Without
     it, from ``ON_FILL_NOTE`` of them, a note says they got none. The fill of a mirror-like plane (``shiny``) does
     not count: a highlight that ends there is that plane reflecting the light (zoo_corridor's metal walls got
     emitters on their unseen parts: 23.11 -> 22.60; without them 22.95, README, fortieth session).

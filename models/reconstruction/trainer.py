@@ -261,8 +261,8 @@ class Trainer:
         planes = ", ".join(str(c) for c in held["per_plane"])
         self.decisions.append(f"plane hold: {len(rows)} of the initialisation's {count} Gaussians lie flat on the "
                               f"room's bounding planes ({planes} per plane); they face their plane, move along it "
-                              f"and stay within {100 * held['depth'] / self.extent:.2f} % of the scene's extent "
-                              "of it")
+                              f"and keep within {100 * held['depth'] / self.extent:.2f} % of the scene's extent "
+                              "of it along its normal")
 
     def _needs_far_field(self, init: Gaussians, closed: Gaussians) -> bool:
         """``init``: what the cameras saw (the mirror test); ``closed``: it with the plane fill (the view test)."""
