@@ -317,3 +317,50 @@ def test_grow_run_gives_the_basin_and_the_slack_run_round_the_best_plane():
     lo, hi = grow_run(agg, best, lambda nxt, cur: nxt <= limit)
     np.testing.assert_array_equal(lo, [6, 1, 0])
     np.testing.assert_array_equal(hi, [6, 3, 0])  # row 1: 0.2, 0.2, 0.22 <= 0.22; 0.3 is not
+
+
+def test_stereo_rays_end_at_the_panel_and_never_beyond(stereo):
+    """``stats["rays"]`` (the trainer's stereo depth loss): per consistent match, the mirror point, its reflected
+    direction and the distance along it that is free. The rays start on the mirror (z = 0), go up, and their free
+    distance ends in front of the panel (z = PANEL_Z) by at most a swept plane or two, never behind it (the loss
+    pushes back whatever blends in front of that distance: beyond the panel it would push the panel)."""
+    fill, stats = stereo
+    start, dirs, free = stats["rays"]
+    assert len(free) == stats["kept"] - stats["inconsistent"] == len(fill)
+    np.testing.assert_allclose(start[:, 2], 0.0, atol=1e-5)
+    assert (dirs[:, 2] > 0).all() and (free > 0).all()
+    end = start + free[:, None] * dirs
+    panel = (np.abs(end[:, :2]) < PANEL_HALF - 0.05).all(-1)
+    assert panel.sum() > 500
+    assert (end[panel, 2] <= PANEL_Z + 3.0 / FL).all()  # a pixel's footprint at the panel
+    assert np.median(PANEL_Z - end[panel, 2]) < 0.1
+
+
+def _blob(means, scale, opacity_logit):
+    n = len(means)
+    return Gaussians(means=torch.tensor(means, dtype=torch.float64), quats=torch.tensor([[1.0, 0, 0, 0]] * n).double(),
+                     log_scales=torch.tensor(np.log(scale), dtype=torch.float64).reshape(n, 3),
+                     opacity_logits=torch.tensor(opacity_logit, dtype=torch.float64),
+                     diffuse=torch.full((n, 3), 0.5).double(), normals=torch.zeros(n, 3).double(),
+                     roughness=torch.ones(n).double(), f0=torch.zeros(n, 3).double())
+
+
+def test_stereo_depth_loss_pushes_haze_in_front_of_the_free_distance_away():
+    """``trainer.in_front_of``: rays with a wall 2 m ahead and free space up to 1.8 m. Without haze the wall is
+    behind the free distance: no loss. A half-transparent blob at 0.8 m puts the rays' expected depth in front of
+    it; the loss's gradient (autograd through the PyTorch tracer) lowers the blob's opacity and leaves the wall's
+    as it is or raises it; a ray that ends on nothing (opacity < 0.5) adds nothing."""
+    from models.reconstruction.trainer import in_front_of
+
+    origins = torch.tensor([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [5.0, 5.0, 0.0]], dtype=torch.float64)
+    dirs = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64)
+    free = torch.full((3,), 1.8, dtype=torch.float64)
+    wall = _blob([[0.0, 0.0, 2.0]], [[1.0, 1.0, 0.01]], [4.0])
+    clear = in_front_of(reference_trace(origins, dirs, wall), free)
+    assert float(clear.abs().max()) < 1e-9
+    scene = Gaussians.cat([wall, _blob([[0.0, 0.0, 0.8]], [[0.3, 0.3, 0.3]], [0.0])])
+    scene.opacity_logits.requires_grad_(True)
+    loss = in_front_of(reference_trace(origins, dirs, scene), free)
+    assert loss[0] > 0.1 and loss[1] > 0.1 and loss[2] == 0
+    (grad,) = torch.autograd.grad(loss.sum(), scene.opacity_logits)
+    assert grad[1] > 0 and grad[0] <= 1e-9  # descent: the haze clears, the wall does not

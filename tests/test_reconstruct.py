@@ -770,6 +770,27 @@ def test_mirror_stereo_gaussians_on_the_rooms_planes_become_its_fixed_material_s
         assert torch.equal(trainer.params[k].detach()[both], v), k
 
 
+def test_the_stereo_depth_loss_traces_the_mirrors_reflected_rays_and_resumes(book, tmp_path):
+    """loss.stereo_depth: when mirror stereo runs (end of warm-up) its consistent matches become reflected rays with
+    a free distance (logged); every step after traces stereo_depth_rays of them and adds the term; a checkpoint
+    carries the rays, so a resumed run goes on with the same ones. Off (the default), no term and no rays."""
+    cfg = dict(SMALL, warmup=0, highlight_fill=False, loss={"stereo_depth": 2.5, "stereo_depth_rays": 64})
+    trainer = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
+    metrics = trainer.train_step()
+    assert any("stereo depth loss on" in d for d in trainer.decisions), trainer.decisions
+    origins, dirs, free = trainer.stereo_rays
+    assert len(free) > 100 and (free > 0).all()
+    torch.testing.assert_close(dirs.norm(dim=1), torch.ones_like(free))
+    assert "loss_stereo_depth" in metrics and metrics["loss_stereo_depth"] >= 0
+    trainer.save_checkpoint(tmp_path / "ckpt.pt")
+    again = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
+    again.load_checkpoint(tmp_path / "ckpt.pt")
+    for a, b in zip(again.stereo_rays, trainer.stereo_rays):
+        assert torch.equal(a, b)
+    off = Trainer(*book, ReconstructConfig.from_dict(dict(cfg, loss={})), tracer())
+    assert "loss_stereo_depth" not in off.train_step() and off.stereo_rays is None
+
+
 def test_the_far_field_is_left_out_where_no_camera_sees_past_the_room(book):
     """``far_field_hidden``: far-field Gaussians that no training camera sees past the captured room are not added
     (behind a closed wall they train on reflections slipping through it and show through any thin spot:

@@ -28,6 +28,16 @@ class LossWeights:
     normal: float = setting(2.5, "L1 on the accumulated (unnormalised) normal", minimum=0)
     roughness: float = setting(1.0, "L1 on blended roughness", minimum=0)
     f0: float = setting(1.0, "L1 on blended F0", minimum=0)
+    stereo_depth: float = setting(0.0, "after warm-up, on reflected rays of the planar mirrors where mirror stereo "
+                                  "found a depth (models/reconstruction/mirror_stereo.py): L1 on how far the ray's "
+                                  "expected depth (given it ends) falls in front of that depth, less what the sweep "
+                                  "cannot tell apart and stereo_depth_margin of it; units as depth. What the "
+                                  "cameras see only in a mirror is otherwise constrained by colour alone, and "
+                                  "half-transparent Gaussians grow into the air in front of it; 0 = off",
+                                  minimum=0)
+    stereo_depth_rays: int = setting(1024, "with stereo_depth: reflected rays drawn per step", minimum=1)
+    stereo_depth_margin: float = setting(0.05, "with stereo_depth: the share of the stereo depth in front of it "
+                                         "still free of the loss", minimum=0, maximum=1)
     prior_smooth: float = setting(2.0, "L1 between each plane-fill Gaussian's diffuse colour and the mean of its 8 "
                                   "nearest fill neighbours' on its own surface (averaged over the fill; not in the "
                                   "paper). What no training view sees is trained by reflections alone, one noisy "

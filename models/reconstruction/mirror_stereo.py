@@ -380,7 +380,9 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     gaussians)`` decides which reflections are open (None: all are). ``plane_slack``: see ``sweep_view``.
     Returns (Gaussians or None, statistics for the log); the statistics' "along" is, per returned Gaussian, (the
     direction [N, 3] of the reflected ray that found it, the stretch [N, 2] of that ray round it the sweep
-    cannot tell from it: ``sweep_view``), for ``plane_fill.stereo_on_planes``."""
+    cannot tell from it: ``sweep_view``), for ``plane_fill.stereo_on_planes``; its "rays" is, per consistent match
+    (placed or not), (the mirror point [M, 3], the reflected direction [M, 3], the distance [M] along it that is
+    free: to the match less the stretch in front of it), for the trainer's stereo depth loss."""
     usable, stats = mirror_views(rays, trace_fn, gaussians)
     stats.update(kept=0, added=0, edge=0, completed=0, inconsistent=0)
     if len(usable) < 2 or count <= 0:
@@ -388,7 +390,7 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     lo, hi, step = scene_box(gaussians)
     centre, half = (lo + hi) / 2, far_scale * float((hi - lo).max()) / 2
     lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
-    pos, colour, dist, fl, seen_along, spans, depth = [], [], [], [], [], [], []
+    pos, colour, dist, fl, seen_along, spans, depth, start = [], [], [], [], [], [], [], []
     for i, ref in enumerate(usable):
         others = usable[:i] + usable[i + 1:]
         if min_share > 0:  # at least this share of the other mirrors must see a depth (module docstring)
@@ -398,7 +400,7 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
         stats["edge"] += edge
         stats["completed"] += filled
         pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))
-        seen_along.append(r), spans.append(span)
+        seen_along.append(r), spans.append(span), start.append(ref.points.reshape(-1, 3)[px])
         dm = np.full(ref.open.size, np.nan)
         dm[px] = d
         depth.append(dm.reshape(ref.open.shape))
@@ -413,10 +415,14 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
                     through += t
             good = (agree >= min_agree) & (through <= agree)
             stats["inconsistent"] += int((~good).sum())
-            pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i] = (
-                a[good] for a in (pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i]))
-    pos, colour, dist, fl, seen_along, spans = (np.concatenate(a) for a in (pos, colour, dist, fl, seen_along,
-                                                                              spans))
+            pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i] = (
+                a[good] for a in (pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i]))
+    pos, colour, dist, fl, seen_along, spans, start = (np.concatenate(a) for a in (pos, colour, dist, fl, seen_along,
+                                                                                     spans, start))
+    # every consistent match as a reflected ray (mirror point, direction, and the depth in front of which the sweep
+    # tells it apart from the one it chose: free space up to there): the trainer's stereo depth loss keeps that
+    # space free (ReconstructConfig.loss.stereo_depth)
+    stats["rays"] = (start, seen_along, np.linalg.norm(pos - start, axis=-1) + spans[:, 0])
     if stats["edge"]:
         stats["notes"] = [f"mirror stereo: {stats['edge']} pixels matched best on the edge of the depth sweep "
                           f"(the cube {far_scale:g}x the scene's box): not placed; what they see may lie farther"]

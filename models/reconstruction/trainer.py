@@ -103,6 +103,9 @@ class Trainer:
         # segments per path: the config's until reflections turn on, then what _decide_path_length chose
         self.path_length: int | None = None
         self.hole_fill: bool | None = None  # the renders' hole fill: decided on the trained model (settings())
+        # reflected rays of the planar mirrors with their free distance (mirror stereo, loss.stereo_depth): origins,
+        # directions, free distance; set when the fills are placed
+        self.stereo_rays: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self.timer = NO_TIMER  # a models.profiling.SectionTimer while a benchmark profiles the step
         # parameters, rays and targets live where the backend traces (a CUDA tracer: on the GPU)
         self.device = getattr(backend, "torch_device", None) or torch.device("cpu")
@@ -495,21 +498,41 @@ class Trainer:
             with self.backend.deferred_checks() as checks:
                 with self.timer.section("path_sampling"):
                     out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
+                    stereo = self._stereo_trace(g, reflections)
                 with self.timer.section("losses"):
-                    total, metrics, flags = self._loss_terms(batch, out, reflections, checks.flags())
+                    total, metrics, flags = self._loss_terms(batch, out, reflections, checks.flags(), stereo)
             if not checks.settle(*flags):
                 return total, metrics
             # a ray outgrew its replay buffer (capacity grown): the step again, checked, with the same random numbers
             self.generator.set_state(rng)
         with self.timer.section("path_sampling"):
             out = trace_paths(self.backend.trace, batch.origins, batch.dirs, g, path_cfg, self.generator)
+            stereo = self._stereo_trace(g, reflections)
         with self.timer.section("losses"):
-            return self._loss_terms(batch, out, reflections)[:2]
+            return self._loss_terms(batch, out, reflections, stereo=stereo)[:2]
 
-    def _loss_terms(self, batch: RaySet, out, reflections: bool,
-                    flags: torch.Tensor | None = None) -> tuple[torch.Tensor, dict, list[float]]:
+    def _stereo_trace(self, g: Gaussians, reflections: bool) -> tuple[TraceOutput, torch.Tensor] | None:
+        """(trace, free distance [M]) of ``loss.stereo_depth_rays`` reflected rays drawn from ``stereo_rays``, each
+        started a tenth of its free distance past its mirror (clear of the mirror's own Gaussians); None when the
+        loss is off or no mirror stereo depth exists."""
+        loss = self.config.loss
+        if not reflections or loss.stereo_depth <= 0 or self.stereo_rays is None:
+            return None
+        origins, dirs, free = self.stereo_rays
+        pick = torch.randint(len(free), (min(loss.stereo_depth_rays, len(free)),), generator=self.generator)
+        pick = pick.to(free.device)
+        start = 0.1 * free[pick]
+        out = self.backend.trace(origins[pick] + start[:, None] * dirs[pick], dirs[pick], g)
+        return out, (1.0 - loss.stereo_depth_margin) * free[pick] - start
+
+    def _loss_terms(self, batch: RaySet, out, reflections: bool, flags: torch.Tensor | None = None,
+                    stereo: tuple[TraceOutput, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict, list[float]]:
         """(total loss, metrics, the host values of ``flags``: extra device values read back with the metrics)."""
         terms = {}
+        if stereo is not None:
+            # the expected depth of the rays that end (opacity >= 0.5), wherever it falls in front of the free distance
+            ahead = in_front_of(*stereo) * (DEPTH_UNIT_SIZE / self.scene_size)
+            terms["stereo_depth"] = self.config.loss.stereo_depth * ahead.mean()
         m = batch.mask
         for layer, w in self.weights.items():
             if layer == "specular":
@@ -680,6 +703,13 @@ class Trainer:
             log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box "
                      "%s .. %s; %d drawn, those no training camera sees past the room left out)", self.step, len(ff),
                      np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist(), drawn)
+            if stereo is not None and cfg.loss.stereo_depth > 0 and len(stereo[1].get("rays", ((), (), ()))[2]):
+                self.stereo_rays = tuple(torch.from_numpy(np.asarray(a)).to(self.device, self.params["means"].dtype)
+                                         for a in stereo[1]["rays"])
+                message = (f"step {self.step}: stereo depth loss on {len(self.stereo_rays[2])} reflected rays of the "
+                           f"planar mirrors (median free distance {float(self.stereo_rays[2].median()):.3g})")
+                log.info(message)
+                self.decisions.append(message)
             for fill in fills:
                 self._add_fill(*fill)
             if grown is not None:
@@ -1020,6 +1050,7 @@ class Trainer:
             "prune_order": self._prune_order, "prune_round": self._prune_round,
             "prune_memory": self.prune_memory.clone(),
             "thickness_box": self._thickness_box,
+            "stereo_rays": self.stereo_rays,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -1041,6 +1072,9 @@ class Trainer:
         self._capped_rows = None
         self._prune_order, self._prune_round = state.get("prune_order"), state.get("prune_round", 0)
         self._thickness_box = state.get("thickness_box")
+        self.stereo_rays = state.get("stereo_rays")
+        if self.stereo_rays is not None:
+            self.stereo_rays = tuple(a.to(self.device) for a in self.stereo_rays)
         self.prune_memory = state.get("prune_memory", torch.zeros((len(self.prior), 0))).to(self.device)
         self._prior_rows = self._reflected_rows = self._fixed_rows = self._far_rows = None
         self.anchors = Anchors(self.device, self.params["means"].dtype)
@@ -1187,6 +1221,15 @@ def surface_neighbours(pos: np.ndarray, normals: np.ndarray, k: int, max_angle_d
     if out.shape[1] < k:
         out = np.concatenate([out, np.repeat(np.arange(n)[:, None], k - out.shape[1], 1)], 1)
     return out
+
+
+def in_front_of(traced: TraceOutput, free: torch.Tensor) -> torch.Tensor:
+    """[R] how far each ray's expected depth, given that it ends (``TraceOutput.opacity``), falls in front of
+    ``free`` [R] (0 behind it), on the rays that mostly end (opacity >= 0.5; 0 on the others: their depth says
+    little). Differentiable: what blends in front of ``free`` is pushed back or made clearer."""
+    opacity = traced.opacity().reshape(-1)
+    ahead = (free - traced.depth.reshape(-1) / opacity).clamp_min(0.0)
+    return torch.where(opacity >= 0.5, ahead, 0.0)
 
 
 def scene_size(gaussians: Gaussians) -> float:
