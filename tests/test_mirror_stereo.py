@@ -320,18 +320,19 @@ def test_grow_run_gives_the_basin_and_the_slack_run_round_the_best_plane():
 
 
 def test_stereo_rays_end_at_the_panel_and_never_beyond(stereo):
-    """``stats["rays"]`` (the trainer's stereo depth loss): per consistent match, the mirror point, its reflected
-    direction and the distance along it that is free. The rays start on the mirror (z = 0), go up, and their free
-    distance ends in front of the panel (z = PANEL_Z) by at most a swept plane or two, never behind it (the loss
-    pushes back whatever blends in front of that distance: beyond the panel it would push the panel)."""
+    """``stats["rays"]`` (the trainer's stereo depth loss): per consistent match by its own texture (not the flat
+    pixels completed from their neighbours), the mirror point, its reflected direction and the distance along it
+    that is free. The rays start on the mirror (z = 0), go up, and their free distance ends on the textured panel
+    (z = PANEL_Z), in front of it by at most a swept plane or two, never behind it (the loss pushes back whatever
+    blends in front of that distance: beyond the panel it would push the panel)."""
     fill, stats = stereo
     start, dirs, free = stats["rays"]
-    assert len(free) == stats["kept"] - stats["inconsistent"] == len(fill)
+    assert stats["completed"] > 0 and 500 < len(free) < len(fill)
     np.testing.assert_allclose(start[:, 2], 0.0, atol=1e-5)
     assert (dirs[:, 2] > 0).all() and (free > 0).all()
     end = start + free[:, None] * dirs
-    panel = (np.abs(end[:, :2]) < PANEL_HALF - 0.05).all(-1)
-    assert panel.sum() > 500
+    panel = (np.abs(end[:, :2]) < PANEL_HALF + 8 * 3.0 / FL).all(-1)  # the texture within the match window
+    assert panel.mean() > 0.97
     assert (end[panel, 2] <= PANEL_Z + 3.0 / FL).all()  # a pixel's footprint at the panel
     assert np.median(PANEL_Z - end[panel, 2]) < 0.1
 

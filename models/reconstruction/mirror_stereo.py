@@ -263,7 +263,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
                max_cost: float = 0.2, best_fraction: float = 1.0, min_contrast: float = 0.1,
                max_basin: float = 0.4, complete_radius: int = 6,
                plane_slack: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int,
-                                                  np.ndarray, np.ndarray]:
+                                                  np.ndarray, np.ndarray, np.ndarray]:
     """Plane sweep of one reference view's open mirror pixels (module docstring). Returns the kept pixels'
     (points [M, 3], colours [M, 3], virtual distances [M], reflected directions [M, 3]), how many otherwise
     clear pixels were dropped because their best depth lies on the edge of the swept range, and how many of
@@ -275,7 +275,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     (0: just that half-way). A flat wall seen at 5-6 m of virtual distance matches over many planes (zoo_mirror_metal:
     stereo depths scattered 30 cm in front of its front wall, the cost at the wall within 3 % of the best for
     most of them); a textured object near a wall does not (zoo_mirror_only's urn, 4-10 cm above the floor: the
-    cost on the floor 1.13-1.5x the best)."""
+    cost on the floor 1.13-1.5x the best); last, [M] bool: matched by its own texture (not completed)."""
     h, w = ref.open.shape
     pix = np.nonzero(ref.open.reshape(-1))[0]
     x = ref.points.reshape(-1, 3)[pix]
@@ -327,6 +327,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
     # a best depth on the sweep's first or last plane is not a minimum (the surface may lie beyond): not kept
     edge = keep & ((best == 0) | (best == depths - 1))
     keep &= ~edge
+    matched = keep.copy()  # by their own texture (before the completion below)
     filled = 0
     if complete_radius > 0:
         fill = complete_flat(best, keep, agg, pix, (h, w), max_cost, complete_radius)
@@ -344,7 +345,7 @@ def sweep_view(ref: MirrorView, others: list[MirrorView], views, lo: np.ndarray,
                      (t[rows, np.minimum(hi_k + 1, depths - 1)] + t[rows, hi_k]) / 2 - tb], axis=1)
     tk = tb[keep]
     return (x[keep] + tk[:, None] * r[keep], ref.colour.reshape(-1, 3)[pix][keep], (s0[keep] + tk), r[keep],
-            int(edge.sum()), filled, pix[keep], span[keep])
+            int(edge.sum()), filled, pix[keep], span[keep], matched[keep])
 
 
 def depth_votes(points: np.ndarray, view: MirrorView, depth: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -390,17 +391,17 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     lo, hi, step = scene_box(gaussians)
     centre, half = (lo + hi) / 2, far_scale * float((hi - lo).max()) / 2
     lo, hi = (centre - half).double().numpy(), (centre + half).double().numpy()
-    pos, colour, dist, fl, seen_along, spans, depth, start = [], [], [], [], [], [], [], []
+    pos, colour, dist, fl, seen_along, spans, depth, start, matched = [], [], [], [], [], [], [], [], []
     for i, ref in enumerate(usable):
         others = usable[:i] + usable[i + 1:]
         if min_share > 0:  # at least this share of the other mirrors must see a depth (module docstring)
             sweep["min_views"] = max(3, math.ceil(min_share * len(others) - 1e-9))
-        p, c, d, r, edge, filled, px, span = sweep_view(ref, others, rays.views, lo, hi, 20 * step,
+        p, c, d, r, edge, filled, px, span, own = sweep_view(ref, others, rays.views, lo, hi, 20 * step,
                                                         plane_slack=plane_slack, **sweep)
         stats["edge"] += edge
         stats["completed"] += filled
         pos.append(p), colour.append(c), dist.append(d), fl.append(np.full(len(d), ref.camera.fl_x))
-        seen_along.append(r), spans.append(span), start.append(ref.points.reshape(-1, 3)[px])
+        seen_along.append(r), spans.append(span), start.append(ref.points.reshape(-1, 3)[px]), matched.append(own)
         dm = np.full(ref.open.size, np.nan)
         dm[px] = d
         depth.append(dm.reshape(ref.open.shape))
@@ -415,14 +416,15 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
                     through += t
             good = (agree >= min_agree) & (through <= agree)
             stats["inconsistent"] += int((~good).sum())
-            pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i] = (
-                a[good] for a in (pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i]))
-    pos, colour, dist, fl, seen_along, spans, start = (np.concatenate(a) for a in (pos, colour, dist, fl, seen_along,
-                                                                                     spans, start))
+            pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i], matched[i] = (
+                a[good] for a in (pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i], matched[i]))
+    pos, colour, dist, fl, seen_along, spans, start, matched = (
+        np.concatenate(a) for a in (pos, colour, dist, fl, seen_along, spans, start, matched))
     # every consistent match as a reflected ray (mirror point, direction, and the depth in front of which the sweep
     # tells it apart from the one it chose: free space up to there): the trainer's stereo depth loss keeps that
     # space free (ReconstructConfig.loss.stereo_depth)
-    stats["rays"] = (start, seen_along, np.linalg.norm(pos - start, axis=-1) + spans[:, 0])
+    stats["rays"] = (start[matched], seen_along[matched],
+                     (np.linalg.norm(pos - start, axis=-1) + spans[:, 0])[matched])
     if stats["edge"]:
         stats["notes"] = [f"mirror stereo: {stats['edge']} pixels matched best on the edge of the depth sweep "
                           f"(the cube {far_scale:g}x the scene's box): not placed; what they see may lie farther"]
