@@ -360,9 +360,9 @@ def test_training_batch_is_also_scored_tonemapped_at_the_training_peak():
     seen = {}
     score = trainer._loss_terms
 
-    def spy(batch, out, reflections, flags=None):
+    def spy(batch, out, reflections, flags=None, stereo=None):
         seen.update(batch=batch, out=out)
-        return score(batch, out, reflections, flags)
+        return score(batch, out, reflections, flags, stereo)
 
     trainer._loss_terms = spy
     _, metrics = trainer.losses(trainer.sample_batch(), True)
