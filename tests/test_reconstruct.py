@@ -783,9 +783,13 @@ def test_the_stereo_depth_loss_traces_the_mirrors_reflected_rays_and_resumes(boo
     torch.testing.assert_close(dirs.norm(dim=1), torch.ones_like(free))
     assert "loss_stereo_depth" in metrics and metrics["loss_stereo_depth"] >= 0
     trainer.save_checkpoint(tmp_path / "ckpt.pt")
+    # free distances 5x past the room's surfaces (each ray still starts in front of them, a tenth of the way): the
+    # rays that end do so in front of them, so the term is positive
+    trainer.stereo_rays = (origins, dirs, free * 5)
+    assert trainer.train_step()["loss_stereo_depth"] > 0
     again = Trainer(*book, ReconstructConfig.from_dict(cfg), tracer())
     again.load_checkpoint(tmp_path / "ckpt.pt")
-    for a, b in zip(again.stereo_rays, trainer.stereo_rays):
+    for a, b in zip(again.stereo_rays, (origins, dirs, free)):
         assert torch.equal(a, b)
     off = Trainer(*book, ReconstructConfig.from_dict(dict(cfg, loss={})), tracer())
     assert "loss_stereo_depth" not in off.train_step() and off.stereo_rays is None

@@ -382,7 +382,7 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     Returns (Gaussians or None, statistics for the log); the statistics' "along" is, per returned Gaussian, (the
     direction [N, 3] of the reflected ray that found it, the stretch [N, 2] of that ray round it the sweep
     cannot tell from it: ``sweep_view``), for ``plane_fill.stereo_on_planes``; its "rays" is, per consistent match
-    (placed or not), (the mirror point [M, 3], the reflected direction [M, 3], the distance [M] along it that is
+    made by its own texture (placed or not; not the flat pixels completed from their neighbours), (the mirror point [M, 3], the reflected direction [M, 3], the distance [M] along it that is
     free: to the match less the stretch in front of it), for the trainer's stereo depth loss."""
     usable, stats = mirror_views(rays, trace_fn, gaussians)
     stats.update(kept=0, added=0, edge=0, completed=0, inconsistent=0)
@@ -420,9 +420,10 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
                 a[good] for a in (pos[i], colour[i], dist[i], fl[i], seen_along[i], spans[i], start[i], matched[i]))
     pos, colour, dist, fl, seen_along, spans, start, matched = (
         np.concatenate(a) for a in (pos, colour, dist, fl, seen_along, spans, start, matched))
-    # every consistent match as a reflected ray (mirror point, direction, and the depth in front of which the sweep
-    # tells it apart from the one it chose: free space up to there): the trainer's stereo depth loss keeps that
-    # space free (ReconstructConfig.loss.stereo_depth)
+    # every consistent match made by its own texture as a reflected ray (mirror point, direction, and the depth in
+    # front of which the sweep tells it apart from the one it chose: free space up to there): the trainer's stereo
+    # depth loss keeps that space free (ReconstructConfig.loss.stereo_depth). The completed flat pixels are left
+    # out: their depth is a neighbour's and can lie behind their own surface
     stats["rays"] = (start[matched], seen_along[matched],
                      (np.linalg.norm(pos - start, axis=-1) + spans[:, 0])[matched])
     if stats["edge"]:

@@ -703,9 +703,10 @@ class Trainer:
             log.info("step %d: added %d far-field Gaussians (outside the cameras' sphere and the captured box "
                      "%s .. %s; %d drawn, those no training camera sees past the room left out)", self.step, len(ff),
                      np.round(box[0], 3).tolist(), np.round(box[1], 3).tolist(), drawn)
-            if stereo is not None and cfg.loss.stereo_depth > 0 and len(stereo[1].get("rays", ((), (), ()))[2]):
+            rays = stereo[1].get("rays") if stereo is not None else None
+            if cfg.loss.stereo_depth > 0 and rays is not None and len(rays[2]):
                 self.stereo_rays = tuple(torch.from_numpy(np.asarray(a)).to(self.device, self.params["means"].dtype)
-                                         for a in stereo[1]["rays"])
+                                         for a in rays)
                 message = (f"step {self.step}: stereo depth loss on {len(self.stereo_rays[2])} reflected rays of the "
                            f"planar mirrors (median free distance {float(self.stereo_rays[2].median()):.3g})")
                 log.info(message)
