@@ -382,8 +382,9 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
     Returns (Gaussians or None, statistics for the log); the statistics' "along" is, per returned Gaussian, (the
     direction [N, 3] of the reflected ray that found it, the stretch [N, 2] of that ray round it the sweep
     cannot tell from it: ``sweep_view``), for ``plane_fill.stereo_on_planes``; its "rays" is, per consistent match
-    made by its own texture (placed or not; not the flat pixels completed from their neighbours), (the mirror point [M, 3], the reflected direction [M, 3], the distance [M] along it that is
-    free: to the match less the stretch in front of it), for the trainer's stereo depth loss."""
+    made by its own texture (placed or not; not the flat pixels completed from their neighbours), (the mirror
+    point [M, 3], the reflected direction [M, 3], the distance [M] along it that is free: to the match less the
+    stretch in front of it), for the trainer's stereo depth loss."""
     usable, stats = mirror_views(rays, trace_fn, gaussians)
     stats.update(kept=0, added=0, edge=0, completed=0, inconsistent=0)
     if len(usable) < 2 or count <= 0:
