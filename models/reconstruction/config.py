@@ -288,13 +288,16 @@ class ReconstructConfig:
                                      "demo's lamp (its gold cube's top then reflected 0.38 of the true specular). "
                                      "Off: frozen, the demo's specular lost 1.8 dB at seed 1 (the emitters no "
                                      "longer grow to tile the lamp) and zoo_spheres 0.5 dB final (README)")
-    fill_anchor: float = setting(0.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
+    fill_anchor: float = setting(3.0, "> 0: mirror-stereo and reflection-fill Gaussians (what the cameras see only "
                                  "in mirrors) are surfels facing the views that placed them: along that direction "
                                  "they stay within this many of their initial sizes of where the fill put them and "
                                  "grow at most this factor (reflections alone pin down no depth: free, they drift "
-                                 "and swell in the part of the room no camera sees); 0 = free, the default "
-                                 "(at 3, two seeds, with the walls the mirrors show closed: zoo_mirror_metal 28.57 "
-                                 "vs 29.06 free, zoo_mirror_only 26.55 vs 26.79; anchors.py, README)",
+                                 "and swell in the part of the room no camera sees); 0 = free. 3, the default "
+                                 "since the fifty-second session (two seeds each, anchored vs free: "
+                                 "zoo_mirror_metal 29.63 / 29.85 vs 28.74 / 30.01, its frosted_mirror edit "
+                                 "+5.87 / +5.71 vs +0.14 / +1.74; zoo_mirror_only 28.52 / 28.49 vs 28.95 / "
+                                 "28.90; mirror_book +0.22; rooms where mirror stereo places nothing, e.g. "
+                                 "zoo_corridor and the probes, bit-identical; anchors.py, README)",
                                  minimum=0)
     plane_hold: bool = setting(True, "the initialisation's Gaussians that lie flat on a wall, the floor or the "
                                "ceiling (a bounding plane of the plane fill's) face it and stay on it: rotation "

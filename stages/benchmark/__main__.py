@@ -6,7 +6,7 @@
 [--gaussians 50000] [--steps 5] [--out FILE.json] [--quick] (ms per training step by section; see train-step --help)
      python -m stages.benchmark buffernet-step [--init sd2] [--size 512] [--dtype bf16] [--device cuda]
 (one buffer-network training step; see buffernet-step --help)
-     python -m stages.benchmark seeds --scenes zoo_mirror_metal,zoo_mirror_only --set reconstruct.fill_anchor=3
+     python -m stages.benchmark seeds --scenes zoo_mirror_metal,zoo_mirror_only --set reconstruct.fill_anchor=0
 [--seeds 0,1] [--jobs 2] [--device cuda] (a settings change against the seed-to-seed spread; see seeds --help)
      python -m stages.benchmark ceiling --scene zoo_spheres [--flat wall_front] [--capture DIR] [--out FILE.json]
 (what a synthetic scene's test views allow at best: its ground truth's noise, surfaces at their mean colour)"""
@@ -155,7 +155,7 @@ def seeds_main(argv) -> int:
     p.add_argument("--scenes", required=True, help="comma-separated scene names (configs/scenes/)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="the variant: a config value changed (repeatable; VALUE read as YAML), e.g. "
-                   "reconstruct.fill_anchor=3")
+                   "reconstruct.fill_anchor=0 (free, against the default 3)")
     p.add_argument("--both", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="a change made to base and variant alike, e.g. render.denoise=false where pyoidn is missing")
     p.add_argument("--seeds", type=_ints, default=[0, 1], help="reconstruct seeds (default 0,1)")

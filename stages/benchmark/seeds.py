@@ -71,7 +71,7 @@ def parse_setting(text: str) -> dict:
     key, sep, value = text.partition("=")
     parts = [k for k in key.strip().split(".") if k]
     if not sep or len(parts) < 2:
-        raise ValueError(f"expected section.key=value (e.g. reconstruct.fill_anchor=3), got {text!r}")
+        raise ValueError(f"expected section.key=value (e.g. reconstruct.fill_anchor=0), got {text!r}")
     out: dict = {parts[-1]: yaml.safe_load(value)}
     for k in reversed(parts[:-1]):
         out = {k: out}
