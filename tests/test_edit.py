@@ -544,11 +544,13 @@ def test_changed_region_scores_tonemapped_weigh_dim_pixels_as_the_headline(tmp_p
         assert s["unedited_psnr_final"] < s["edited_psnr_final"]
 
 
-@pytest.mark.xfail(strict=True, reason="known limitation: the changed pixels are found on the ground truths clamped "
-                   "to [0, 1] (models/metrics/edits.py _final), so a capture in other units (x 1000: everything "
-                   "clamps to 1) finds none; the scores themselves are taken at the view's peak")
 def test_changed_region_scores_do_not_depend_on_the_capture_units(tmp_path):
+    """The changed pixels are found at the unedited capture's white (its key over middle grey), so a capture x 1000
+    (a lamp at 4000, a wall at 200) finds the same ones and scores the same; only the white scales."""
     one, big = _lamp_edit(tmp_path / "one"), _lamp_edit(tmp_path / "big", scale=1000.0)
     for name in ("a", "b"):
+        assert one[name]["changed_pixels"] > 0
+        assert big[name]["changed_white"] == pytest.approx(1000 * one[name]["changed_white"], rel=1e-6)
         for key, value in one[name].items():
-            assert big[name][key] == pytest.approx(value, abs=1e-6), key
+            if key != "changed_white":
+                assert big[name][key] == pytest.approx(value, abs=1e-6), key

@@ -15,19 +15,40 @@ from .hdr import mu_law, peak
 from .image import mse_to_psnr, psnr
 from .scoring import evaluate_renders, ground_truth
 
-CHANGED_THRESHOLD = 0.02  # a pixel is "changed by the edit" where ground truth final moved more than this
+CHANGED_THRESHOLD = 0.02  # a pixel is "changed by the edit" where ground truth final moved more than this x white
 # ... after a 3x3 box filter of the signed difference: the two ground truths' Monte Carlo noise decorrelates
 # wherever paths reach the edited object (indirect light), and unfiltered it marks scattered pixels everywhere
 CHANGED_FILTER = 3
+MIDDLE_GREY = 0.18  # the key a capture's exposure maps to middle grey (Reinhard et al. 2002, "Photographic Tone
+# Reproduction for Digital Images": a = 0.18); white = key / MIDDLE_GREY
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709
 
 
-def _final(buffers: dict) -> np.ndarray:
-    """Ground-truth final (with emission) clamped to [0, 1]: only to find the changed pixels, not to score."""
-    return np.clip(ground_truth(buffers)["final"], 0, 1)
+def capture_white(capture: Capture) -> float:
+    """The radiance the changed-pixel rule calls white, in the capture's own units: the key of the unedited
+    capture (the log-average luminance of its ground-truth final over every pixel above zero of every view that
+    has diffuse and specular, Reinhard et al. 2002) divided by middle grey (0.18). A capture x 1000 has a white
+    x 1000, so the changed pixels do not depend on the units radiance is written in; 1.0 where no pixel is
+    positive. The zoo's rooms: 0.55-1.25."""
+    total, count = 0.0, 0
+    for view in capture.views:
+        if "diffuse" not in view.buffers or "specular" not in view.buffers:
+            continue
+        lum = ground_truth(view.buffers)["final"].astype(np.float64) @ _LUMINANCE
+        lum = lum[lum > 0]
+        total, count = total + float(np.log(lum).sum()), count + lum.size
+    return float(np.exp(total / count)) / MIDDLE_GREY if count else 1.0
+
+
+def _final(buffers: dict, white: float) -> np.ndarray:
+    """Ground-truth final (with emission) over ``white``, clamped to [0, 1]: only to find the changed pixels, not
+    to score."""
+    return np.clip(ground_truth(buffers)["final"] / white, 0, 1)
 
 
 def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, baseline_renders: Path) -> dict:
-    """PSNR per layer on the pixels the edit changed (box-filtered ground-truth final moved > CHANGED_THRESHOLD):
+    """PSNR per layer on the pixels the edit changed (box-filtered ground-truth final, over the unedited capture's
+    white (``capture_white``) and clamped to [0, 1], moved > CHANGED_THRESHOLD):
     the edited render vs the edited ground truth, and, as the do-nothing reference, the unedited render vs
     the same edited ground truth. ``<edited|unedited>_psnr_<layer>_tonemapped`` (the headline, as the scene's
     ``psnr_<layer>_tonemapped``): mu-law at the peak of the edited ground truth's final image; beside it
@@ -37,8 +58,9 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
     weighing the same; ``pooled_<edited|unedited>_psnr_<layer>_tonemapped`` is one PSNR over every view's changed
     pixels together, each pixel weighing the same (zoo_mirror_metal's frosted_mirror: its mirror's 974 changed
     pixels in one view and 10 of Monte Carlo noise and indirect light in another counted half and half in the
-    mean); ``changed_pixels``: their number over all views."""
+    mean); ``changed_pixels``: their number over all views; ``changed_white``: the white they were found at."""
     before = {v.name: v for v in capture.split("test")}
+    white = capture_white(capture)
     out: dict[str, list] = {}
     pooled: dict[str, list] = {}  # every view's changed pixels' tonemapped squared errors, per key (pooled_*)
     changed = 0
@@ -47,7 +69,7 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
             raise ValueError(f"ground-truth view {view.name!r} has no test view of that name in the capture")
         h, w = view.camera.height, view.camera.width
         gt = ground_truth(view.buffers)
-        diff = _final(view.buffers) - _final(before[view.name].buffers)
+        diff = _final(view.buffers, white) - _final(before[view.name].buffers, white)
         diff = uniform_filter(diff, (CHANGED_FILTER, CHANGED_FILTER, 1))
         mask = np.abs(diff).max(axis=-1) > CHANGED_THRESHOLD
         out.setdefault("changed_fraction", []).append(float(mask.mean()))
@@ -66,7 +88,7 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
                 pooled.setdefault(f"pooled_{key}_psnr_{layer}_tonemapped", []).append(
                     ((np.asarray(a, np.float64) - b) ** 2)[mask].ravel())
     return ({k: float(np.mean(v)) for k, v in out.items()} | {"changed_pixels": changed}
-            | {k: mse_to_psnr(float(np.concatenate(v).mean())) for k, v in pooled.items()})
+            | {k: mse_to_psnr(float(np.concatenate(v).mean())) for k, v in pooled.items()} | {"changed_white": white})
 
 
 def _gain(changed: dict, key: str) -> float | None:
