@@ -155,3 +155,43 @@ def test_probe_rooms_look_where_the_training_orbit_does_not(tmp_path, capsys):
     blocked.write_text("")
     assert main(["probe", "338", "--out-dir", str(blocked / "sub")]) == 1
     assert "error: cannot write" in capsys.readouterr().err
+
+
+def test_mirror_probes_hide_what_the_training_cameras_see_only_in_the_mirror(tmp_path):
+    """``python -m stages.synth probe --mirror``: the random room with a wall mirror the training cameras face.
+    The floor objects named in ``evaluate.regions`` stand behind every training camera's image plane (no training
+    pixel sees them directly), the test cameras face them, and the room keeps random_scene_config's objects but
+    the panels on the mirror's wall; --find wants such an object and another shiny metal the cameras face."""
+    from models.synth.cameras import path_poses
+    from models.synth.procedural import mirror_probe_scene, mirror_probe_worthy
+    from stages.config import load_config
+    from stages.synth.__main__ import main
+
+    schema = yaml.safe_load((SCHEMAS / "synth.schema.yaml").read_text())
+    assert [s for s in range(30) if mirror_probe_worthy(mirror_probe_scene(s))] == [1, 21, 28]
+    for seed in (1, 21, 28, 5):
+        doc = mirror_probe_scene(seed)
+        jsonschema.validate(doc["synth"], schema)
+        spec = parse_spec(doc["synth"])
+        room = {o["name"] for o in random_scene_config(seed)["objects"]}
+        names = {o["name"] for o in doc["synth"]["objects"]}
+        assert names - room == {"mirror"} and all(not n.startswith(("sphere", "cube")) for n in room - names)
+        mirror = next(o for o in doc["synth"]["objects"] if o["name"] == "mirror")
+        train, test = path_poses(spec.train), path_poses(spec.test)
+        # OpenGL cameras look down -z: every training camera faces the mirror's wall
+        assert all(-p[2, 2] < -0.7 for p in train), seed
+        for name, box in doc["evaluate"]["regions"].items():
+            lo, hi = np.array(box["min"]), np.array(box["max"])
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            for p in train:  # behind the image plane of every training camera
+                assert ((corners - p[:3, 3]) @ -p[:3, 2] < 0).all(), (seed, name)
+            for p in test:  # in front of every test camera
+                assert ((lo + hi) / 2 - p[:3, 3]) @ -p[:3, 2] > 0.5, (seed, name)
+        assert bool(doc["evaluate"]["regions"]) or not mirror_probe_worthy(doc), seed
+        assert mirror["transform"]["translate"][2] > -doc["synth"]["objects"][0]["transform"]["scale"][1]
+    assert main(["probe", "--mirror", "0", "--find", "2", "--out-dir", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["probe_mirror_1.yaml", "probe_mirror_21.yaml"]
+    cfg = yaml.safe_load((tmp_path / "probe_mirror_21.yaml").read_text())
+    assert cfg == mirror_probe_scene(21) and "probe --mirror 21" in (tmp_path / "probe_mirror_21.yaml").read_text()
+    committed = load_config("probe_mirror_21")
+    assert committed["synth"] == cfg["synth"] and committed["evaluate"]["regions"] == cfg["evaluate"]["regions"]

@@ -247,3 +247,94 @@ def probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views: int =
         "height": [MIN_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT], "azimuth": [_r(start), _r(start + 360.0)],
     }
     return {"scene": f"probe_{seed}", "kind": "synthetic", "presets": ["fast"], "synth": synth}
+
+
+def _forward(position, target) -> np.ndarray:
+    d = np.asarray(target, float) - np.asarray(position, float)
+    return d / np.linalg.norm(d)
+
+
+def _box_corners(obj: dict) -> np.ndarray:
+    """[8, 3] corners of a floor object's (sphere or y-rotated cube, unit shapes scaled) world bounding box."""
+    tr = obj["transform"]
+    centre, half = np.asarray(tr["translate"], float), np.asarray(tr["scale"], float)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    local = signs * half
+    for rot in tr.get("rotate", []):  # cubes turn about y only
+        a = math.radians(rot["angle"])
+        c, s = math.cos(a), math.sin(a)
+        local = local @ np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+    return centre + local
+
+
+def _shiny(material: dict) -> bool:
+    """A metal smooth enough to reflect the room (roughness < 0.3)."""
+    metal = material.get("type") == "conductor" or material.get("metallic") == 1.0
+    return metal and float(material.get("roughness", 0.0)) < 0.3
+
+
+def mirror_probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views: int = 20, spp: int = 256) -> dict:
+    """A held-out probe of what the cameras see only in a planar mirror: the random room of ``seed``
+    (``random_scene_config``: its walls, lights and objects unchanged) with a wall mirror (a perfect conductor
+    over most of the back wall, the panels that hung there removed), ``views`` training cameras standing in the
+    room's front half and looking at the mirror, and three test cameras near the mirror turned round towards
+    what stands behind every training camera (the floor objects no training camera faces: ``evaluate.regions``
+    ``hidden_<name>``, their boxes + 5 cm). Whether the room is worth it: ``mirror_probe_worthy``."""
+    synth = random_scene_config(seed, resolution=resolution, views=views, spp=spp)
+    rng = np.random.default_rng([seed, 2026])  # its own stream: the room is random_scene_config(seed)'s
+    floor = next(o for o in synth["objects"] if o["name"] == "floor")
+    ceiling = next(o for o in synth["objects"] if o["name"] == "ceiling")
+    hx, hz = floor["transform"]["scale"][:2]
+    height = ceiling["transform"]["translate"][1]
+    back = -hz + 0.01  # where random_scene_config hangs the back wall's panels
+    synth["objects"] = [o for o in synth["objects"] if not (
+        o["shape"] == "rectangle" and o["name"] not in ("floor", "ceiling") and not o["name"].startswith(("wall_", "light_"))
+        and abs(o["transform"]["translate"][2] - back) < 1e-3)]
+    mw, mh = min(hx - 0.3, 1.6), min((height - 0.5) / 2, 1.0)
+    my = 0.3 + mh
+    synth["objects"].append({"name": "mirror", "shape": "rectangle",
+                             "material": {"type": "conductor", "roughness": 0.0, "specular_reflectance": [0.95, 0.95, 0.95]},
+                             "transform": {"translate": [0.0, _r(my), _r(-hz + 0.02)], "scale": [_r(mw), _r(mh), 1]}})
+    z0 = rng.uniform(0.0, 0.3) * hz
+    top = min(2.0, height - 0.3)
+    train = []
+    for i, x in enumerate(np.linspace(-0.45 * hx, 0.45 * hx, views)):
+        pos = [x + rng.uniform(-0.05, 0.05), MIN_CAMERA_HEIGHT + (top - MIN_CAMERA_HEIGHT) * (i % 3) / 2,
+               z0 + 0.35 * (i % 2)]
+        target = [0.6 * x + rng.uniform(-0.2, 0.2), my - 0.1 + rng.uniform(-0.15, 0.15), -hz]
+        train.append({"position": _rgb(pos), "target": _rgb(target)})
+    fov = _r(rng.uniform(50, 65))
+    synth["cameras"]["train"] = {"type": "list", "count": views, "fov_y": fov, "views": train}
+    hidden = [o for o in synth["objects"] if o["shape"] in ("sphere", "cube") and _seen_by(o, train) == 0]
+    if hidden:
+        aim = np.mean([o["transform"]["translate"] for o in hidden], axis=0)
+        aim[1] = 0.4
+    else:
+        aim = np.array([0.0, 0.4, hz])
+    synth["cameras"]["test"] = {"type": "list", "count": 3, "fov_y": fov, "views": [
+        {"position": _rgb([x, y, -hz + 0.7]), "target": _rgb(aim)}
+        for x, y in ((-0.4 * hx, 1.3), (0.0, 1.5), (0.4 * hx, 1.35))]}
+    regions = {}
+    for o in hidden:
+        corners = _box_corners(o)
+        regions[f"hidden_{o['name']}"] = {"min": _rgb(corners.min(0) - 0.05), "max": _rgb(corners.max(0) + 0.05)}
+    return {"scene": f"probe_mirror_{seed}", "kind": "synthetic", "presets": ["fast"], "synth": synth,
+            "evaluate": {"regions": regions}}
+
+
+def _seen_by(obj: dict, cameras: list[dict]) -> int:
+    """How many of ``cameras`` ({position, target}) have a corner of ``obj``'s box in front of their image plane
+    (0: none can see it directly, whatever its field of view)."""
+    corners = _box_corners(obj)
+    return sum(bool(((corners - c["position"]) @ _forward(c["position"], c["target"]) > 0.05).any()) for c in cameras)
+
+
+def mirror_probe_worthy(doc: dict) -> bool:
+    """A mirror probe worth running: at least one floor object behind every training camera (seen only in the
+    mirror) and, among the objects the cameras do face, at least one shiny metal (roughness < 0.3), so that
+    the mirror shares the views with another shiny thing."""
+    synth = doc["synth"]
+    train = synth["cameras"]["train"]["views"]
+    floor_objects = [o for o in synth["objects"] if o["shape"] in ("sphere", "cube")]
+    seen = [o for o in floor_objects if _seen_by(o, train) > 0]
+    return len(seen) < len(floor_objects) and any(_shiny(o["material"]) for o in seen)

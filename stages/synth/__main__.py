@@ -53,6 +53,14 @@ PROBE_HEADER = """\
 #   snakemake --cores 2 --config scene={scene}
 """
 
+MIRROR_PROBE_HEADER = """\
+# Held-out mirror probe (README, "Held-out probes"): the random room of models.synth.procedural seed {seed} with a
+# wall mirror, written by `python -m stages.synth probe --mirror {seed}`. Nobody tunes to it: the training cameras
+# face the mirror, so the floor objects behind them (evaluate.regions hidden_*) are seen only in it; the test
+# cameras, by the mirror, turn round and look at them directly.
+#   snakemake --cores 2 --config scene={scene}
+"""
+
 
 def probe_main(argv: list[str]) -> int:
     """``python -m stages.synth probe SEED...``: held-out probe scene configs (``procedural.probe_scene``)."""
@@ -60,16 +68,26 @@ def probe_main(argv: list[str]) -> int:
         prog="python -m stages.synth probe",
         description="Write configs/scenes/probe_<seed>.yaml for random rooms (the buffer network's generator) with "
         "test views the training orbit does not have; then `snakemake --config scene=probe_<seed>` runs it. With "
-        "--find N: the first N seeds from SEED whose room holds two mirror-like objects and a glossy dielectric.")
+        "--find N: the first N seeds from SEED whose room holds two mirror-like objects and a glossy dielectric. With "
+        "--mirror: probe_mirror_<seed>.yaml, the room with a wall mirror that the training cameras face, so what "
+        "stands behind them is seen only in it (--find: at least one such floor object, and another shiny metal "
+        "the cameras face).")
     p.add_argument("seeds", type=int, nargs="+", metavar="SEED", help="room seed(s) (models.synth.procedural)")
     p.add_argument("--find", type=int, metavar="N", help="instead: the first N probe-worthy seeds from SEED on")
+    p.add_argument("--mirror", action="store_true",
+                   help="mirror probes (procedural.mirror_probe_scene): what the cameras see only in a wall mirror")
     p.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parents[2] / "configs" / "scenes",
                    help="where the scene configs go (default: configs/scenes)")
     p.add_argument("--force", action="store_true", help="overwrite an existing config")
     args = p.parse_args(argv)
     import yaml
 
-    from models.synth.procedural import probe_scene, probe_worthy, random_scene_config
+    from models.synth.procedural import (mirror_probe_scene, mirror_probe_worthy, probe_scene, probe_worthy,
+                                         random_scene_config)
+
+    make, header = (mirror_probe_scene, MIRROR_PROBE_HEADER) if args.mirror else (probe_scene, PROBE_HEADER)
+    worthy = ((lambda s: mirror_probe_worthy(mirror_probe_scene(s))) if args.mirror
+              else (lambda s: probe_worthy(random_scene_config(s))))
 
     if any(s < 0 for s in args.seeds) or (args.find is not None and args.find < 1):
         print("error: seeds must be >= 0 and --find >= 1", file=sys.stderr)
@@ -78,17 +96,17 @@ def probe_main(argv: list[str]) -> int:
     if args.find is not None:
         seeds, s = [], args.seeds[0]
         while len(seeds) < args.find:
-            if probe_worthy(random_scene_config(s)):
+            if worthy(s):
                 seeds.append(s)
             s += 1
-    docs = [probe_scene(seed) for seed in seeds]
+    docs = [make(seed) for seed in seeds]
     paths = [args.out_dir / f"{doc['scene']}.yaml" for doc in docs]
     taken = [str(path) for path in paths if path.exists()]
     if taken and not args.force:  # checked before writing any: nothing half done
         print(f"error: {', '.join(taken)} exist(s) (--force overwrites)", file=sys.stderr)
         return 1
     for seed, doc, path in zip(seeds, docs, paths):
-        text = PROBE_HEADER.format(seed=seed, scene=doc["scene"]) + yaml.safe_dump(
+        text = header.format(seed=seed, scene=doc["scene"]) + yaml.safe_dump(
             doc, sort_keys=False, default_flow_style=None, width=118)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
