@@ -145,8 +145,6 @@ def sweep_main(argv) -> int:
 
 
 def seeds_main(argv) -> int:
-    from models.reconstruction.config import ReconstructConfig
-
     p = argparse.ArgumentParser(
         prog="python -m stages.benchmark seeds",
         description="A settings change against the run-to-run spread: every scene is trained, rendered and scored "
@@ -157,7 +155,7 @@ def seeds_main(argv) -> int:
     p.add_argument("--scenes", required=True, help="comma-separated scene names (configs/scenes/)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="the variant: a config value changed (repeatable; VALUE read as YAML), e.g. "
-                   f"reconstruct.fill_anchor=0 (free, against the default {ReconstructConfig().fill_anchor:g})")
+                   "reconstruct.fill_anchor=0 (free, against the default's anchored surfels: configs/default.yaml)")
     p.add_argument("--both", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="a change made to base and variant alike, e.g. render.denoise=false where pyoidn is missing")
     p.add_argument("--seeds", type=_ints, default=[0, 1], help="reconstruct seeds (default 0,1)")
