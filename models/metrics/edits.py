@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import uniform_filter
+from scipy.ndimage import label, uniform_filter
 
 from models.capture import Capture, read_view_buffers
 from models.capture.layers import SCORED
@@ -19,6 +19,11 @@ CHANGED_THRESHOLD = 0.02  # a pixel is "changed by the edit" where ground truth 
 # ... after a 3x3 box filter of the signed difference: the two ground truths' Monte Carlo noise decorrelates
 # wherever paths reach the edited object (indirect light), and unfiltered it marks scattered pixels everywhere
 CHANGED_FILTER = 3
+CHANGED_MIN_PIXELS = CHANGED_FILTER  # ... and a changed pixel lies in a connected (8-neighbour) group of at least
+# this many: a real change, box-filtered, stays above the threshold over at least the filter's width (a thin pole
+# moved: a strip 3 pixels wide; one strong pixel: a 3x3 block); groups of 1-2 pixels are the noise's filtered sum
+# crossing the threshold by chance (zoo_thin move_rack: one view's whole "changed region" was 2 such pixels, and
+# each view weighs the same in the mean)
 MIDDLE_GREY = 0.18  # the key a capture's exposure maps to middle grey (Reinhard et al. 2002, "Photographic Tone
 # Reproduction for Digital Images": a = 0.18); white = key / MIDDLE_GREY
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709
@@ -48,7 +53,7 @@ def _final(buffers: dict, white: float) -> np.ndarray:
 
 def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, baseline_renders: Path) -> dict:
     """PSNR per layer on the pixels the edit changed (box-filtered ground-truth final, over the unedited capture's
-    white (``capture_white``) and clamped to [0, 1], moved > CHANGED_THRESHOLD):
+    white (``capture_white``) and clamped to [0, 1], moved > CHANGED_THRESHOLD, in a connected group of at least CHANGED_MIN_PIXELS):
     the edited render vs the edited ground truth, and, as the do-nothing reference, the unedited render vs
     the same edited ground truth. ``<edited|unedited>_psnr_<layer>_tonemapped`` (the headline, as the scene's
     ``psnr_<layer>_tonemapped``): mu-law at the peak of the edited ground truth's final image; beside it
@@ -58,7 +63,8 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
     weighing the same; ``pooled_<edited|unedited>_psnr_<layer>_tonemapped`` is one PSNR over every view's changed
     pixels together, each pixel weighing the same (zoo_mirror_metal's frosted_mirror: its mirror's 974 changed
     pixels in one view and 10 of Monte Carlo noise and indirect light in another counted half and half in the
-    mean); ``changed_pixels``: their number over all views; ``changed_white``: the white they were found at."""
+    mean); ``changed_pixels``: their number over all views; ``changed_noise_pixels``: those above the threshold
+    left out as groups of fewer than CHANGED_MIN_PIXELS; ``changed_white``: the white they were found at."""
     before = {v.name: v for v in capture.split("test")}
     white = capture_white(capture)
     out: dict[str, list] = {}
@@ -72,6 +78,11 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
         diff = _final(view.buffers, white) - _final(before[view.name].buffers, white)
         diff = uniform_filter(diff, (CHANGED_FILTER, CHANGED_FILTER, 1))
         mask = np.abs(diff).max(axis=-1) > CHANGED_THRESHOLD
+        groups, _ = label(mask, structure=np.ones((3, 3)))
+        small = np.bincount(groups.ravel()) < CHANGED_MIN_PIXELS
+        small[0] = False  # the unchanged pixels
+        out.setdefault("changed_noise_pixels", []).append(int(small[groups].sum()))
+        mask &= ~small[groups]
         out.setdefault("changed_fraction", []).append(float(mask.mean()))
         changed += int(mask.sum())
         if not mask.any():
@@ -87,7 +98,8 @@ def changed_region_metrics(capture: Capture, truth: Capture, renders: Path, base
                 out.setdefault(f"{key}_psnr_{layer}_tonemapped", []).append(psnr(a, b, mask))
                 pooled.setdefault(f"pooled_{key}_psnr_{layer}_tonemapped", []).append(
                     ((np.asarray(a, np.float64) - b) ** 2)[mask].ravel())
-    return ({k: float(np.mean(v)) for k, v in out.items()} | {"changed_pixels": changed}
+    noise = int(sum(out.pop("changed_noise_pixels", [])))
+    return ({k: float(np.mean(v)) for k, v in out.items()} | {"changed_pixels": changed, "changed_noise_pixels": noise}
             | {k: mse_to_psnr(float(np.concatenate(v).mean())) for k, v in pooled.items()} | {"changed_white": white})
 
 
@@ -129,4 +141,5 @@ def evaluate_edit(capture: Capture, truth: Capture, renders: Path, baseline_rend
         "definitions": edited["definitions"],
         "changed_threshold": CHANGED_THRESHOLD,
         "changed_filter": CHANGED_FILTER,
+        "changed_min_pixels": CHANGED_MIN_PIXELS,
     }
