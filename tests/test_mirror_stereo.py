@@ -135,6 +135,26 @@ def test_a_depth_needs_a_share_of_the_other_mirrors(stereo, monkeypatch):
         assert got_stats["kept"] == stats["kept"] and torch.equal(got.means, fill.means), share
 
 
+def test_the_share_counts_views_not_mirror_planes(monkeypatch):
+    """A view may hold several planar mirrors (the faces of a chrome cube beside a wall mirror: probe_mirror_21
+    has 51 planes in 20 views). The share is of the other VIEWS: counted over planes, 0.3 asked 15 of 50 where
+    at most the 19 other views of the wall mirror can see a depth, and only depths just in front of the mirror
+    qualified (ceiling matches 3 m too near). Here every view's mirror comes twice (a second plane of the same
+    view): the sweep still asks for 0.3 x 8 other views -> 3 and 0.9 x 8 -> 8, not 0.9 x 17 -> 16."""
+    import models.reconstruction.mirror_stereo as ms
+
+    real = ms.mirror_views
+    monkeypatch.setattr(ms, "mirror_views", lambda *a, **k: (lambda out: ([m for v in out[0] for m in (v, v)],
+                                                                          out[1]))(real(*a, **k)))
+    asked = []
+    sweep = ms.sweep_view
+    monkeypatch.setattr(ms, "sweep_view", lambda *a, **k: asked.append(k.get("min_views", 3)) or sweep(*a, **k))
+    for share, views in ((0.3, 3), (0.9, 8)):
+        asked.clear()
+        mirror_stereo_gaussians(_rays(), reference_trace, _room(), count=100000, min_share=share)
+        assert asked == [views] * 18, (share, asked)
+
+
 def test_stereo_gaussians_carry_the_reflected_colour(stereo):
     fill, _ = stereo
     p = fill.means.numpy()

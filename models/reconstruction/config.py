@@ -176,8 +176,8 @@ class ReconstructConfig:
                                            "(README, fortieth session)",
                                            minimum=0.01, maximum=0.99)
     mirror_stereo_min_share: float = setting(0.3, "mirror stereo: a depth is a candidate only where at least this "
-                                             "share of the other mirrors (and at least 3) see it: 6 of 19 on a "
-                                             "20-view room (3 placed a fifth more stereo Gaussians on "
+                                             "share of the other views' mirrors (and at least 3) see it: 6 of 19 on a "
+                                             "20-view room, however many mirror planes each view holds (3 placed a fifth more stereo Gaussians on "
                                              "zoo_mirror_metal and more haze in its view from behind the cameras; "
                                              "models/reconstruction/mirror_stereo.py)", minimum=0, maximum=1)
     plane_fill_count: int = setting(20000, "Gaussians (at most) on the unseen parts of the planes that bound the "
