@@ -413,8 +413,8 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
         dm[px] = d
         depth.append(dm.reshape(ref.open.shape))
     stats["kept"] = int(sum(len(p) for p in pos))
-    every = [np.concatenate(a) if a else np.zeros((0, 3)) for a in (start, seen_along)]
-    every_t = np.linalg.norm(np.concatenate(pos) - every[0], axis=-1) if pos else np.zeros(0)
+    every = [np.concatenate(a) for a in (start, seen_along)]  # usable holds >= 2 mirrors: never empty
+    every_t = np.linalg.norm(np.concatenate(pos) - every[0], axis=-1)
     consistent = [np.ones(len(p), bool) for p in pos]
     if min_agree > 0:  # the mirrors' depths must agree with each other, and none may see through the point
         for i in range(len(usable)):
@@ -441,13 +441,13 @@ def mirror_stereo_gaussians(rays, trace_fn, gaussians: Gaussians, count: int = 6
         stats["notes"] = [f"mirror stereo: {stats['edge']} pixels matched best on the edge of the depth sweep "
                           f"(the cube {far_scale:g}x the scene's box): not placed; what they see may lie farther"]
     pick = np.random.default_rng(seed).permutation(len(pos))[:count]
-    consistent = np.concatenate(consistent) if consistent else np.zeros(0, bool)
+    consistent = np.concatenate(consistent)
     placed = np.zeros(len(consistent), bool)
     placed[np.nonzero(consistent)[0][pick]] = True
     # every match before the mirrors' vote, for a check against the true surfaces (stages/benchmark/stereo.py):
-    # mirror point, reflected direction, distance along it, matched by its own texture, kept by the vote, placed
+    # mirror point, reflected direction, distance along it, matched by its own texture, placed
     stats["matches"] = {"start": every[0], "dirs": every[1], "t": every_t, "own": np.concatenate(own_all),
-                        "consistent": consistent, "placed": placed}
+                        "placed": placed}
     if len(pos) == 0:
         return None, stats
     pos, colour, scale = pos[pick], colour[pick], dist[pick] / fl[pick]  # a pixel at its virtual distance

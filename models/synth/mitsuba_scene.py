@@ -171,3 +171,22 @@ def load_scene(spec: SynthSpec):
     except Exception as e:  # Mitsuba raises RuntimeError with its own text
         raise ValueError(f"synth: Mitsuba could not build the scene: {e}") from None
     return scene, built.materials
+
+
+def first_hits(spec: SynthSpec, origins: np.ndarray, dirs: np.ndarray, eps: float = 0.0) -> tuple[np.ndarray, list[str]]:
+    """(distance [N] along each ray to the first surface of ``spec``, inf where none; the object's name per ray, "none"
+    where none): Mitsuba's ray casts on the scene's geometry from ``origins`` [N, 3] along unit ``dirs`` [N, 3],
+    starting ``eps`` along each ray (distances still from ``origins``)."""
+    mi = mitsuba()
+    scene, _ = load_scene(spec)
+    o = np.asarray(origins, np.float64) + eps * np.asarray(dirs, np.float64)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
+                   mi.Vector3f(*[mi.Float(np.asarray(dirs)[:, k].astype(np.float32)) for k in range(3)]))
+    si = scene.ray_intersect(ray)
+    valid = np.array(si.is_valid(), dtype=bool)
+    t = np.where(valid, np.array(si.t, dtype=np.float64) + eps, np.inf)
+    names = np.full(len(o), "none", dtype=object)
+    for shape in scene.shapes():
+        names[np.array(si.shape == mi.ShapePtr(shape), dtype=bool) & valid] = shape.id()
+    return t, list(names)
+

@@ -51,22 +51,13 @@ def flat_spec(spec: SynthSpec, names: list[str]) -> SynthSpec:
 def unseen_objects(spec: SynthSpec, cameras) -> list[str]:
     """The textured objects of ``spec`` that no pixel centre of ``cameras`` (the training views') hits first: what
     only reflections show the training views (Mitsuba's own ray casts on the scene's geometry)."""
-    import drjit as dr
+    from models.synth.mitsuba_scene import first_hits
 
-    from models.synth.mitsuba_scene import load_scene, mitsuba
-
-    mi = mitsuba()
-    scene, _ = load_scene(spec)
-    hits = {shape.id(): 0 for shape in scene.shapes()}
-    for cam in cameras:
-        d = cam.ray_directions().reshape(-1, 3)
-        o = np.broadcast_to(cam.origin, d.shape)
-        ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
-                       mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
-        si = scene.ray_intersect(ray)
-        for shape in scene.shapes():
-            hits[shape.id()] += int(dr.count(si.is_valid() & (si.shape == mi.ShapePtr(shape)))[0])
-    return [o.name for o in spec.objects if o.material.texture is not None and hits.get(o.name, 0) == 0]
+    dirs = [cam.ray_directions().reshape(-1, 3) for cam in cameras]
+    origins = [np.broadcast_to(cam.origin, d.shape) for cam, d in zip(cameras, dirs)]
+    _, names = first_hits(spec, np.concatenate(origins), np.concatenate(dirs))
+    hits = set(names)
+    return [o.name for o in spec.objects if o.material.texture is not None and o.name not in hits]
 
 
 def score_views(truth: Capture, rendered: Capture) -> dict[str, float]:

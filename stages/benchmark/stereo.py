@@ -26,23 +26,11 @@ KINDS = (("own", "all"), ("own", "placed"), ("completed", "all"), ("completed", 
 
 
 def true_hits(spec, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """(distance [N] to the first surface of ``spec`` along each ray, inf where none; the object's name per ray,
-    "none" where none): Mitsuba's ray cast on the scene's geometry, from ``origins`` [N, 3] along unit ``dirs``."""
-    from models.synth.mitsuba_scene import load_scene, mitsuba
+    """``models.synth.mitsuba_scene.first_hits`` from 1 cm along each reflected ray: past the mirror itself (a mirror
+    point from a depth buffer can lie a fraction of a mm behind it)."""
+    from models.synth.mitsuba_scene import first_hits
 
-    mi = mitsuba()
-    scene, _ = load_scene(spec)
-    eps = 1e-2  # past the mirror itself: a mirror point from a depth buffer can lie a fraction of a mm behind it
-    o = origins + eps * dirs
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
-                   mi.Vector3f(*[mi.Float(dirs[:, k].astype(np.float32)) for k in range(3)]))
-    si = scene.ray_intersect(ray)
-    valid = np.array(si.is_valid(), dtype=bool)
-    t = np.where(valid, np.array(si.t, dtype=np.float64) + eps, np.inf)
-    names = np.full(len(o), "none", dtype=object)
-    for shape in scene.shapes():
-        names[np.array(si.shape == mi.ShapePtr(shape), dtype=bool) & valid] = shape.id()
-    return t, list(names)
+    return first_hits(spec, origins, dirs, eps=1e-2)
 
 
 def accuracy_table(t: np.ndarray, t_true: np.ndarray, names: list[str], own: np.ndarray, placed: np.ndarray,
