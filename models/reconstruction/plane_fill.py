@@ -35,7 +35,7 @@ the training views' buffers and covers their unseen parts.
    half of the room behind them. When the mirror stereo has placed what the mirrors show (end of warm-up), the
    box grows to hold those points and the bounding planes are filled in the grown part too (zoo_mirror_only:
    the floor behind the cameras, which a test view turning round looks at). The wall the mirrors show on an open
-   side (no plane of the buffers faces it) becomes a bounding plane itself, so that what no reflection could show
+   side (no plane of the buffers faces it, or none lies that way at all: ``shown_sides``) becomes a bounding plane itself, so that what no reflection could show
    of it, the patch behind an object standing in front of it, is covered too (``_shown_walls``).
 
 7. Relit (``relight_plane_fill``, ``plane_fill_relight``): step 5 gives an unseen part the radiance of the nearest
@@ -71,6 +71,8 @@ COS_DUPLICATE = math.cos(math.radians(30.0))  # ... facing like it: normals with
 SHOWN_WALL_SHARE = 0.3   # a wall the mirrors show (_shown_walls): this share of the points beyond the first box
 SHOWN_WALL_MIN = 50      # ... and at least this many
 SHOWN_WALL_BEYOND = 0.05  # ... with at most this share of them farther than it
+SHOWN_WALL_SPREAD = 3.0  # ... "farther": this many times their spread round it (_wall_at's first try)
+SHOWN_WALL_WINDOW = 6.0  # ... the spread measured on the points within this many tol of it
 
 
 def pixel_points(rays, max_points: int, seed: int = 0) -> dict[str, np.ndarray] | None:
@@ -252,10 +254,11 @@ class Room:
 
 
 def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray,
-          done: tuple[np.ndarray, np.ndarray] | None, dtype) -> tuple[Gaussians | None, dict]:
+          done: tuple[np.ndarray, np.ndarray] | None, dtype, done_planes: int | None = None) -> tuple[Gaussians | None, dict]:
     """Steps 3-5 inside the box [lo, hi]: one Gaussian per unseen grid point of each bounding plane, farther than
-    1.5 h from every ``occupied`` point, outside the box ``done`` (a fill already covered it), up to ``count``
-    (the grid coarsens from ``room.h`` to fit). Sets ``room.h`` to the spacing used."""
+    1.5 h from every ``occupied`` point, outside the box ``done`` (a fill already covered it) on the first
+    ``done_planes`` planes (all without it: a plane found since that fill was not in it), up to ``count`` (the
+    grid coarsens from ``room.h`` to fit). Sets ``room.h`` to the spacing used."""
     stats = {"unseen": 0, "added": 0}
     tol, h, pts, src = room.tol, room.h, room.src["points"], room.src
     tree = cKDTree(occupied)
@@ -271,7 +274,7 @@ def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.n
             for j, (n2, d2, _) in enumerate(room.bound):
                 if j != i:
                     inside &= g @ n2 - d2 > -tol
-            if done is not None:
+            if done is not None and (done_planes is None or i < done_planes):
                 inside &= ~((g >= done[0] - tol) & (g <= done[1] + tol)).all(1)
             g = g[inside]
             g = g[tree.query(g, k=1)[0] > 1.5 * h] if len(g) else g
@@ -370,43 +373,88 @@ def extend_plane_fill(room: Room | None, rays, seen: np.ndarray, count: int = 20
     if not grown:
         return None, stats
     stats["grown"] = ", ".join(grown)
+    first = len(room.bound)
     if material is not None:
         stats["walls"] = _shown_walls(room, seen, *(np.asarray(m, dtype=np.float64) for m in material))
+    # a wall found here is filled where unseen inside the first box too: the first fill did not have it (a side
+    # wall at that box's face, probe_mirror_21's +x: the box's side left open where the first fill ended)
     fill, more = _fill(room, rays, count, opacity, lo, hi, np.concatenate([room.src["points"], seen]),
-                       (room.lo, room.hi), dtype)
+                       (room.lo, room.hi), dtype, done_planes=first)
     stats.update(more)
     room.lo, room.hi = lo, hi
     return fill, stats
 
 
-def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarray, roughness: np.ndarray) -> str:
-    """Bounding planes for the walls ``seen`` shows on the room's open sides (``extend_plane_fill``); returns
-    their description ("none" without one). On each open side n (``open_sides``), the points beyond
-    the first box are histogrammed (bins of 2 tol); the fullest bin, refined to the median within 2 tol of it,
-    is a wall when it holds >= ``SHOWN_WALL_SHARE`` of those points (and >= ``SHOWN_WALL_MIN``) and no more than
-    ``SHOWN_WALL_BEYOND`` lie farther than 3 tol behind it (a doorway or a window the mirror shows, with the
-    room beyond, stays open: the far field's). Its points join ``room.src`` with their material (the plane's:
-    what the fill's Gaussians there take), facing back into the room."""
-    tol = room.tol
-    corners = box_corners(room.lo, room.hi)
-    described = []
-    for n in open_sides(room):  # (a wall placed here joins room.bound: a later side is tested against it too)
-        proj = seen @ n
-        face = float((corners @ n).max())
-        beyond = proj > face + tol
-        if beyond.sum() < SHOWN_WALL_MIN:
+def shown_sides(room: Room) -> list[np.ndarray]:
+    """The directions in which ``room`` may have a wall its buffers never showed: its open sides (``open_sides``),
+    then both directions along the line two perpendicular bounding planes share, where no bounding plane lies
+    either way (a room seen from one end: cameras that face a wall mirror see the floor and that wall, and the
+    side walls only in the mirror; probe_mirror_21 found 2 bounding planes, floor and back wall, and its side
+    walls, at +-x, were no side at all: a test view turning to one looked through the stereo's haze into nothing)."""
+    normals = [n for n, _, _ in room.bound]
+    sides = open_sides(room)
+    for i, a in enumerate(normals):
+        for b in normals[i + 1:]:
+            c = np.cross(a, b)
+            length = float(np.linalg.norm(c))
+            if length < -OPPOSITE:  # not perpendicular
+                continue
+            for d in (c / length, -c / length):
+                if not any(abs(float(m @ d)) > -OPPOSITE for m in normals) and \
+                        not any(float(m @ d) > -OPPOSITE for m in sides):
+                    sides.append(d)
+    return sides
+
+
+def _wall_at(proj: np.ndarray, face: float, tol: float) -> tuple[float, np.ndarray, float, float] | None:
+    """A wall across one side of the room (``_shown_walls``) from ``proj``, the points' offsets along the side's
+    direction: (its offset s, which points lie on it, their share, the share behind it) or None. Tried twice:
+
+    1. the points at or beyond the box's ``face`` (from 2 tol inside it: a side wall the seen floor reaches
+       stands at the face); the fullest bin (2 tol), refined to the median within 2 tol of it, holds >=
+       ``SHOWN_WALL_SHARE`` of them and no more than ``SHOWN_WALL_BEYOND`` lie farther behind it than
+       ``SHOWN_WALL_SPREAD`` x their spread round it (1.4826 x the median distance to s of those within
+       ``SHOWN_WALL_WINDOW`` tol, at least tol). The stereo's depths of a wall seen obliquely in a mirror scatter
+       by ~0.1 m (probe_mirror_21's side walls: 0.11-0.15 m), 2-3 tol: a wall's far half, not a room beyond it.
+    2. (as before the first) the points beyond the face + tol, nothing farther than 3 tol behind.
+
+    A doorway or a window the mirror shows, with the room beyond, stays open (the far field's)."""
+    for near, spread in ((proj > face - 2 * tol, True), (proj > face + tol, False)):
+        if near.sum() < SHOWN_WALL_MIN:
             continue
-        pb = proj[beyond]
+        pb = proj[near]
         edges = np.arange(pb.min(), pb.max() + 2 * tol, 2 * tol)
         if len(edges) < 2:
             continue
         hist, edges = np.histogram(pb, bins=edges)
         peak = 0.5 * (edges[hist.argmax()] + edges[hist.argmax() + 1])
         s = float(np.median(pb[np.abs(pb - peak) <= 2 * tol]))
-        on = beyond & (np.abs(proj - s) <= 2 * tol)
-        share, behind = on.sum() / beyond.sum(), float(np.mean(pb > s + 3 * tol))
-        if on.sum() < SHOWN_WALL_MIN or share < SHOWN_WALL_SHARE or behind > SHOWN_WALL_BEYOND:
+        margin = 3 * tol
+        if spread:
+            window = np.abs(pb - s) <= SHOWN_WALL_WINDOW * tol
+            margin = SHOWN_WALL_SPREAD * max(tol, 1.4826 * float(np.median(np.abs(pb[window] - s))))
+        on = near & (np.abs(proj - s) <= 2 * tol)
+        share, behind = on.sum() / near.sum(), float(np.mean(pb > s + margin))
+        if on.sum() >= SHOWN_WALL_MIN and share >= SHOWN_WALL_SHARE and behind <= SHOWN_WALL_BEYOND:
+            return s, on, share, behind
+    return None
+
+
+def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarray, roughness: np.ndarray) -> str:
+    """Bounding planes for the walls ``seen`` shows on the room's open sides (``extend_plane_fill``); returns
+    their description ("none" without one). On each side n where the buffers showed no wall (``shown_sides``)
+    the points' offsets along n are searched for a wall (``_wall_at``). Its points join ``room.src`` with their
+    material (the plane's: what the fill's Gaussians there take), facing back into the room."""
+    tol = room.tol
+    corners = box_corners(room.lo, room.hi)
+    described = []
+    for n in shown_sides(room):  # (a wall placed here joins room.bound: a later side is tested against it too)
+        proj = seen @ n
+        face = float((corners @ n).max())
+        found = _wall_at(proj, face, tol)
+        if found is None:
             continue
+        s, on, share, behind = found
         src, k, first = room.src, int(on.sum()), len(room.src["points"])
         pts = seen[on] - (proj[on] - s)[:, None] * n  # onto the plane
         add = {"points": pts, "normals": np.tile(-n, (k, 1)), "diffuse": diffuse.reshape(-1, 3)[on],
@@ -415,8 +463,8 @@ def _shown_walls(room: Room, seen: np.ndarray, diffuse: np.ndarray, f0: np.ndarr
             src[key] = np.concatenate([src[key], value.astype(src[key].dtype)])
         room.bound.append((-n, -s, np.arange(first, first + k)))
         axis = int(np.argmax(np.abs(n)))
-        described.append(f"{'+' if n[axis] > 0 else '-'}{'xyz'[axis]} at {s - face:.2f} beyond the box ({k} of "
-                         f"{int(beyond.sum())} points beyond it, {behind:.1%} behind the wall)")
+        described.append(f"{'+' if n[axis] > 0 else '-'}{'xyz'[axis]} at {s - face:.2f} beyond the box ({k} points "
+                         f"on it, {share:.0%} of those there; {behind:.1%} behind the wall)")
     return "; ".join(described) if described else "none"
 
 
