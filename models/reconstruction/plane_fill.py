@@ -35,8 +35,10 @@ the training views' buffers and covers their unseen parts.
    half of the room behind them. When the mirror stereo has placed what the mirrors show (end of warm-up), the
    box grows to hold those points and the bounding planes are filled in the grown part too (zoo_mirror_only:
    the floor behind the cameras, which a test view turning round looks at). The wall the mirrors show on an open
-   side (no plane of the buffers faces it, or none lies that way at all: ``shown_sides``) becomes a bounding plane itself, so that what no reflection could show
-   of it, the patch behind an object standing in front of it, is covered too (``_shown_walls``).
+   side (no plane of the buffers faces it, or none lies that way at all: ``shown_sides``) becomes a bounding
+   plane itself, so that what no reflection could show of it, the patch behind an object standing in front of
+   it, is covered too (``_shown_walls``), and it is filled inside the first box as well (the first fill did not
+   have it).
 
 7. Relit (``relight_plane_fill``, ``plane_fill_relight``): step 5 gives an unseen part the radiance of the nearest
    seen part, but the same material under a lamp sends more. Once the model's lights are placed (the end of
@@ -68,7 +70,7 @@ OPPOSITE = -0.95  # two bounding planes whose normals' dot is below this face ea
 DUPLICATE_NEAR = 0.95  # distinct(): a bounding plane with this share of its points within 3 tol of a larger one,
 DUPLICATE_OWN = 0.25   # ... and this share of them facing like it or on a seam with a third plane: its duplicate
 COS_DUPLICATE = math.cos(math.radians(30.0))  # ... facing like it: normals within this angle
-SHOWN_WALL_SHARE = 0.3   # a wall the mirrors show (_shown_walls): this share of the points beyond the first box
+SHOWN_WALL_SHARE = 0.3   # a wall the mirrors show (_wall_at): this share of the points at or beyond the box's face
 SHOWN_WALL_MIN = 50      # ... and at least this many
 SHOWN_WALL_BEYOND = 0.05  # ... with at most this share of them farther than it
 SHOWN_WALL_SPREAD = 3.0  # ... "farther": this many times their spread round it (_wall_at's first try)
@@ -254,7 +256,8 @@ class Room:
 
 
 def _fill(room: Room, rays, count: int, opacity: float, lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray,
-          done: tuple[np.ndarray, np.ndarray] | None, dtype, done_planes: int | None = None) -> tuple[Gaussians | None, dict]:
+          done: tuple[np.ndarray, np.ndarray] | None, dtype,
+          done_planes: int | None = None) -> tuple[Gaussians | None, dict]:
     """Steps 3-5 inside the box [lo, hi]: one Gaussian per unseen grid point of each bounding plane, farther than
     1.5 h from every ``occupied`` point, outside the box ``done`` (a fill already covered it) on the first
     ``done_planes`` planes (all without it: a plane found since that fill was not in it), up to ``count`` (the
