@@ -10,6 +10,7 @@ from tests.conftest import ROOT
 
 STAGES = sorted(p.parent.name for p in (ROOT / "stages").glob("*/__main__.py"))
 SUBCOMMANDS = [("benchmark", "sweep"), ("benchmark", "train-step"), ("benchmark", "seeds"), ("benchmark", "stereo"),
+               ("benchmark", "where"),
                ("buffernet_train", "train"), ("edit", "apply"), ("edit", "evaluate"), ("report", "scene"),
                ("report", "batch"), ("synth", "procedural")]
 HEAVY = {"torch", "warp"}

@@ -177,16 +177,26 @@ def first_hits(spec: SynthSpec, origins: np.ndarray, dirs: np.ndarray, eps: floa
     """(distance [N] along each ray to the first surface of ``spec``, inf where none; the object's name per ray, "none"
     where none): Mitsuba's ray casts on the scene's geometry from ``origins`` [N, 3] along unit ``dirs`` [N, 3],
     starting ``eps`` along each ray (distances still from ``origins``)."""
+    t, names, _ = surface_hits(spec, origins, dirs, eps)
+    return t, names
+
+
+def surface_hits(spec: SynthSpec, origins: np.ndarray, dirs: np.ndarray,
+                 eps: float = 0.0) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """``first_hits`` plus the unit geometric normal [N, 3] at each hit (zero where none), turned to face the ray."""
     mi = mitsuba()
     scene, _ = load_scene(spec)
-    o = np.asarray(origins, np.float64) + eps * np.asarray(dirs, np.float64)
+    dirs = np.asarray(dirs, np.float64)
+    o = np.asarray(origins, np.float64) + eps * dirs
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
-                   mi.Vector3f(*[mi.Float(np.asarray(dirs)[:, k].astype(np.float32)) for k in range(3)]))
+                   mi.Vector3f(*[mi.Float(dirs[:, k].astype(np.float32)) for k in range(3)]))
     si = scene.ray_intersect(ray)
     valid = np.array(si.is_valid(), dtype=bool)
     t = np.where(valid, np.array(si.t, dtype=np.float64) + eps, np.inf)
     names = np.full(len(o), "none", dtype=object)
     for shape in scene.shapes():
         names[np.array(si.shape == mi.ShapePtr(shape), dtype=bool) & valid] = shape.id()
-    return t, list(names)
-
+    n = np.stack([np.array(si.n[k], dtype=np.float64) for k in range(3)], 1)
+    n = np.where(valid[:, None], n, 0.0)
+    n *= np.where((n * dirs).sum(1, keepdims=True) > 0, -1.0, 1.0)  # facing the ray
+    return t, list(names), n

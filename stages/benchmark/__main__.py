@@ -11,7 +11,9 @@
      python -m stages.benchmark ceiling --scene zoo_spheres [--flat wall_front] [--capture DIR] [--out FILE.json]
 (what a synthetic scene's test views allow at best: its ground truth's noise, surfaces at their mean colour)
      python -m stages.benchmark stereo --scene probe_mirror_21 [--results results] [--out FILE.json]
-(mirror stereo's depths against the scene's true surfaces, per object; see stereo --help)"""
+(mirror stereo's depths against the scene's true surfaces, per object; see stereo --help)
+     python -m stages.benchmark where --scene zoo_corridor [--results results] [--layer specular] [--out FILE.json]
+(a rendered synthetic scene's test-view error by what each pixel sees: first object, then its mirror reflections)"""
 
 from __future__ import annotations
 
@@ -385,8 +387,60 @@ def stereo_main(argv) -> int:
     return 0
 
 
+def where_main(argv) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m stages.benchmark where",
+        description="Where a rendered synthetic scene's test-view error lies: Mitsuba casts every test pixel's ray "
+        "into the scene's true geometry and follows it through up to --bounces mirror reflections (conductors "
+        "smoother than roughness 0.3); each path (\"metal_left>ceiling\") gets its share of the view's pixels and "
+        "of its tonemapped squared error (mu-law at the view's peak, as evaluate), the PSNR there and the mean true "
+        "and rendered luminance. Reads <results>/<scene>/capture, renders/test and metrics.json (run the scene's "
+        "workflow first); prints a table per view and writes the JSON (stages/benchmark/where.py).",
+    )
+    p.add_argument("--scene", required=True, help="a synthetic scene (configs/scenes/<scene>.yaml)")
+    p.add_argument("--results", type=Path, default=Path("results"),
+                   help="where <scene>/capture, <scene>/renders and <scene>/metrics.json lie")
+    p.add_argument("--layer", choices=["final", "specular", "diffuse"], default="final", help="the layer scored")
+    p.add_argument("--bounces", type=int, default=3, help="mirror reflections followed (default 3)")
+    p.add_argument("--top", type=int, default=8, help="paths per view in the table (the JSON has all)")
+    p.add_argument("--out", type=Path, default=None, help="write the JSON here")
+    a = p.parse_args(argv)
+    if a.bounces < 0 or a.top < 1:
+        print("error: --bounces must be >= 0 and --top >= 1", file=sys.stderr)
+        return 1
+    from stages.config import ConfigError, load_config
+
+    from models.capture import CaptureError, read_capture
+    from models.synth.spec import parse_spec
+    from stages.benchmark.where import format_table, run_where
+
+    root = a.results / a.scene
+    try:
+        config = load_config(a.scene)
+        if "synth" not in config:
+            raise ValueError(f"scene {a.scene!r} has no synth section: the paths need the scene's true geometry")
+        spec = parse_spec(config["synth"])
+        capture = read_capture(root / "capture")
+        metrics_path = root / "metrics.json"
+        if not metrics_path.exists():
+            raise ValueError(f"{metrics_path}: no metrics (run `snakemake --cores 2 {metrics_path}` first)")
+        metrics = json.loads(metrics_path.read_text())
+        result = run_where(spec, capture, root / "renders" / "test", metrics, layer=a.layer, bounces=a.bounces)
+    except (CaptureError, ConfigError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    result["scene"] = a.scene
+    print(format_table(result, top=a.top))
+    if a.out is not None:
+        write_json_atomic(a.out, result)
+        print(f"wrote {a.out}")
+    return 0
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["where"]:
+        return where_main(argv[1:])
     if argv[:1] == ["stereo"]:
         return stereo_main(argv[1:])
     if argv[:1] == ["sweep"]:
