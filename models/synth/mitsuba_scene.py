@@ -181,11 +181,13 @@ def first_hits(spec: SynthSpec, origins: np.ndarray, dirs: np.ndarray, eps: floa
     return t, names
 
 
-def surface_hits(spec: SynthSpec, origins: np.ndarray, dirs: np.ndarray,
-                 eps: float = 0.0) -> tuple[np.ndarray, list[str], np.ndarray]:
-    """``first_hits`` plus the unit geometric normal [N, 3] at each hit (zero where none), turned to face the ray."""
+def surface_hits(spec: SynthSpec, origins: np.ndarray, dirs: np.ndarray, eps: float = 0.0,
+                 scene=None) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """``first_hits`` plus the unit geometric normal [N, 3] at each hit (zero where none), turned to face the ray.
+    ``scene``: ``load_scene(spec)[0]`` when the caller casts several times (else it is built here)."""
     mi = mitsuba()
-    scene, _ = load_scene(spec)
+    if scene is None:
+        scene, _ = load_scene(spec)
     dirs = np.asarray(dirs, np.float64)
     o = np.asarray(origins, np.float64) + eps * dirs
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),

@@ -6,7 +6,7 @@ names the object it hits; at a conductor of roughness below ``MIRROR_ROUGHNESS``
 true normal and cast again, up to ``bounces`` times. Each pixel gets a path label ("metal_left>ceiling",
 "ball_mid>metal_right>strip_b") and the table gives, per label, its share of the view's pixels and of its
 tonemapped squared error (the headline's mu-law at the view's peak, as ``evaluate``), the PSNR on those pixels,
-and the mean true and rendered radiance (final or specular layer): a reflection that is too dark, a light that is
+and the mean true and rendered luminance of the layer scored: a reflection that is too dark, a light that is
 too dim, a wall seen only in a ball. The sessions before this one wrote such scripts by hand each time (README,
 "Fifty-sixth session": zoo_corridor's strip light seen only in chrome balls, one pixel spanning 0.4 m of ceiling).
 """
@@ -29,15 +29,18 @@ def mirror_objects(spec) -> set[str]:
     return out
 
 
-def path_labels(spec, origins: np.ndarray, dirs: np.ndarray, bounces: int = 3) -> list[str]:
+def path_labels(spec, origins: np.ndarray, dirs: np.ndarray, bounces: int = 3, scene=None) -> list[str]:
     """Each ray's path label: the first object it meets ("none" past the scene), then, while that object is in
-    ``mirror_objects``, the one its mirror reflection about the true normal meets, up to ``bounces`` reflections."""
-    from models.synth.mitsuba_scene import surface_hits
+    ``mirror_objects``, the one its mirror reflection about the true normal meets, up to ``bounces`` reflections.
+    ``scene``: the spec's Mitsuba scene when the caller already built it."""
+    from models.synth.mitsuba_scene import load_scene, surface_hits
 
+    if scene is None:
+        scene, _ = load_scene(spec)
     mirrors = mirror_objects(spec)
     o = np.asarray(origins, np.float64)
     d = np.asarray(dirs, np.float64)
-    t, names, n = surface_hits(spec, o, d)
+    t, names, n = surface_hits(spec, o, d, scene=scene)
     labels = np.array(names, dtype=object)
     live = np.nonzero(np.isin(labels, list(mirrors)) & np.isfinite(t))[0]
     for _ in range(bounces):
@@ -45,7 +48,7 @@ def path_labels(spec, origins: np.ndarray, dirs: np.ndarray, bounces: int = 3) -
             break
         p = o[live] + d[live] * t[live, None]
         r = d[live] - 2.0 * (d[live] * n[live]).sum(1, keepdims=True) * n[live]
-        t2, names2, n2 = surface_hits(spec, p, r, eps=1e-3)
+        t2, names2, n2 = surface_hits(spec, p, r, eps=1e-3, scene=scene)
         names2 = np.array(names2, dtype=object)
         labels[live] = labels[live] + ">" + names2
         o, d, t, n = o.copy(), d.copy(), t.copy(), n.copy()
@@ -79,12 +82,14 @@ def camera_rays(view) -> tuple[np.ndarray, np.ndarray]:
 
 def run_where(spec, capture, renders_dir, metrics: dict, layer: str = "final", bounces: int = 3) -> dict:
     """``error_by_label`` of every test view of ``capture`` rendered in ``renders_dir`` (``<view>.exr``), the
-    ``layer`` ('final' or 'specular') scored as ``evaluate`` does (mu-law at the view's peak from ``metrics``)."""
+    ``layer`` ('final', 'diffuse' or 'specular') scored as ``evaluate`` does (mu-law at the view's peak from ``metrics``)."""
     from models.capture.exr import read_exr_channels
     from models.metrics.hdr import mu_law
+    from models.synth.mitsuba_scene import load_scene
 
     lum = np.array([0.2126, 0.7152, 0.0722])
     out = {"layer": layer, "bounces": bounces, "views": {}}
+    scene, _ = load_scene(spec)
     for view in capture.split("test"):
         path = renders_dir / f"{view.name}.exr"
         if not path.exists():
@@ -93,14 +98,13 @@ def run_where(spec, capture, renders_dir, metrics: dict, layer: str = "final", b
         prefix = "" if layer == "final" else f"{layer}."
         ours = np.stack([r[f"{prefix}{c}"] for c in "RGB"], -1).reshape(-1, 3)
         b = view.buffers
-        if layer == "final":
-            truth = (b["diffuse"] + b["specular"] + b.get("emission", 0.0)).reshape(-1, 3)
-        else:
-            truth = b[layer].reshape(-1, 3)
+        emission = b.get("emission", 0.0)  # evaluate's truths: final = diffuse + specular + emission, diffuse + emission
+        truth = {"final": b["diffuse"] + b["specular"] + emission, "diffuse": b["diffuse"] + emission,
+                 "specular": b["specular"]}[layer].reshape(-1, 3)
         row = metrics.get("views", {}).get(view.name, {})
         peak = float(row.get("peak", truth.max()))
         err = ((mu_law(ours, peak) - mu_law(truth, peak)) ** 2).mean(-1)
-        labels = path_labels(spec, *camera_rays(view), bounces=bounces)
+        labels = path_labels(spec, *camera_rays(view), bounces=bounces, scene=scene)
         out["views"][view.name] = {"psnr": float(-10.0 * np.log10(max(float(err.mean()), 1e-30))),
                                    "rows": error_by_label(err, labels, truth @ lum, ours @ lum)}
     return out
