@@ -12,9 +12,10 @@ import torch
 from models.gaussians import Gaussians
 from models.tracer._torch_impl import reference_trace
 from models.reconstruction.data import RaySet
-from models.reconstruction.reflection_fill import (box_exit, diffuse_level, highlight_fill_gaussians, matte_material,
-                                                reflection_fill_gaussians, seen_empty, snap_to_planes,
-                                                sweep_box_scale)
+from models.reconstruction.reflection_fill import (box_exit, diffuse_level, footprint_angle, highlight_fill_gaussians,
+                                                light_points, matte_material, near_seen_light,
+                                                reflection_fill_gaussians, reflection_spread, seen_empty,
+                                                snap_to_planes, sweep_box_scale)
 
 
 def _gaussians(means: torch.Tensor, scale: float, opacity: float) -> Gaussians:
@@ -192,6 +193,102 @@ def test_the_on_fill_purity_weighs_highlights_and_dark_reflections_drawn_at_thei
         _, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True,
                                             on_fill_purity=0.5, max_count=max_count)
         assert stats["on_fill"] == 48 and stats["on_fill_impure"] == 0 and stats["on_fill_added"] == placed
+
+
+def test_highlight_fill_leaves_out_highlights_whose_footprint_holds_a_light_seen_directly(monkeypatch):
+    """``skip_seen_lights``: the lamp's highlights, on the unseen ceiling (x < -0.3) and open (x > 0.3), with a
+    light the cameras see directly along the mirror grid's two outer edges (x = -0.9 on the ceiling, x = 0.9 at the
+    swept box's top). Each pixel spans 0.1 rad of reflection (a curved mirror's): 1.8 m up, a footprint of 0.18 m
+    holds the seen light for the outermost column (x = -0.8 / 0.8, 0.1 m from it) and not the next (0.245 m):
+    those 12 + 12 get no emitter, the rest keep theirs, unmoved. With a flat mirror's footprint (1 mrad), or the
+    option off, every highlight keeps its emitter."""
+    import models.reconstruction.reflection_fill as rf
+
+    ys = torch.linspace(-0.8, 0.8, 12, dtype=torch.float64)
+    seen = torch.cat([torch.stack([torch.full_like(ys, -0.9), ys, torch.full_like(ys, 0.95)], -1),
+                      torch.stack([torch.full_like(ys, 0.9), ys, torch.full_like(ys, 1.1)], -1)]).numpy()
+    monkeypatch.setattr(rf, "light_points", lambda rays: seen)
+    for spread, skipped in [(0.1, 12), (1e-3, 0)]:
+        monkeypatch.setattr(rf, "footprint_angle", lambda rays, index, a=spread: torch.full((len(index),), a))
+        rays, x, scene, ceiling = _lamp_under_ceiling()
+        lights, stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True,
+                                                 skip_seen_lights=True)
+        plain, plain_stats = highlight_fill_gaussians(rays, reference_trace, scene, fill=ceiling, on_fill=True)
+        assert plain_stats["seen_light"] == 0 and plain_stats["added"] == plain_stats["on_fill_added"] == 48
+        assert stats["seen_light"] == 2 * skipped
+        assert stats["added"] == stats["on_fill_added"] == 48 - skipped
+        kept = plain.means[(plain.means[:, 0].abs() < 0.75) if skipped else slice(None)]
+        torch.testing.assert_close(lights.means.sort(0).values, kept.sort(0).values)
+
+
+def test_reflection_spread_is_the_pixel_angle_on_a_flat_mirror_and_wide_on_a_ball():
+    """One pixel's spread of reflection: on a flat mirror the angle between neighbouring pixels' rays (a mirror
+    keeps angles), on a ball 0.4 m across 3 m away many times that; neighbours on another surface (a depth jump)
+    or a matte one do not count, and a pixel with none has 0."""
+    from models.capture import View
+    from models.capture.camera import Camera
+
+    cam = Camera(width=16, height=12, fl_x=40.0, fl_y=40.0, cx=8.0, cy=6.0, c2w=np.eye(4))  # looks down -z
+    d = torch.tensor(cam.ray_directions().reshape(-1, 3))
+    n = len(d)
+    o = torch.zeros(n, 3, dtype=torch.float64)
+
+    def rays_of(depth, normal, f0):
+        t = {"depth": depth.reshape(-1, 1), "normal": normal, "f0": f0.reshape(-1, 1).repeat(1, 3),
+             "roughness": torch.zeros(n, 1, dtype=torch.float64)}
+        view = View(name="v", camera=cam, split="train", buffers={})
+        return RaySet(o, d, torch.ones(n, dtype=torch.bool), t, torch.zeros(n, dtype=torch.long), [view])
+
+    # a flat mirror z = -2 facing the camera
+    flat = rays_of(2.0 / -d[:, 2], torch.tensor([[0.0, 0, 1]], dtype=torch.float64).repeat(n, 1),
+                   torch.full((n,), 0.9, dtype=torch.float64))
+    centre = 6 * 16 + 8
+    pixel = max(float(torch.arccos((d[centre] * d[j]).sum().clamp(-1, 1))) for j in (centre - 1, centre + 1,
+                                                                                    centre - 16, centre + 16))
+    spread = reflection_spread(flat, torch.tensor([centre]))
+    assert spread.item() == pytest.approx(pixel, rel=1e-6) and pixel == pytest.approx(1 / 40, rel=0.01)
+    # a ball of radius 0.2 at 3 m: what misses it is a matte wall at 4 m
+    c, radius = torch.tensor([0.0, 0.0, -3.0], dtype=torch.float64), 0.2
+    b = (d @ c)
+    disc = b * b - (c @ c - radius * radius)
+    hit = disc > 0
+    depth = torch.where(hit, b - disc.clamp_min(0).sqrt(), 4.0 / -d[:, 2])
+    normal = torch.nn.functional.normalize(torch.where(hit[:, None], d * depth[:, None] - c,
+                                                       torch.tensor([0.0, 0, 1], dtype=torch.float64)), dim=-1)
+    ball = rays_of(depth, normal, torch.where(hit, 0.9, 0.0))
+    assert hit[centre] and hit.sum() >= 5
+    wide = reflection_spread(ball, torch.tensor([centre]))
+    assert wide.item() > 5 * pixel  # ~2 x (pixel footprint 3/40 m) / (radius 0.2 m) rad, less the view's turn
+    alone = torch.nonzero(hit).reshape(-1)
+    lonely = [int(i) for i in alone if not any(bool(hit[j]) for j in (i - 1, i + 1, i - 16, i + 16))]
+    if lonely:
+        assert (reflection_spread(ball, torch.tensor(lonely)) == 0).all()
+    matte = rays_of(depth, normal, torch.zeros(n, dtype=torch.float64))
+    assert reflection_spread(matte, torch.tensor([centre])).item() == 0.0
+    # the glossy lobe widens it: 2 alpha = 2 roughness^2 more
+    flat.targets["roughness"][:] = 0.25
+    assert footprint_angle(flat, torch.tensor([centre])).item() == pytest.approx(pixel + 2 * 0.25 ** 2, rel=1e-6)
+    # footprint test: a light 0.1 m from where a 2 m reflection ends is in a 0.1 rad footprint, not a 0.04 one
+    ends, starts = torch.tensor([[0.0, 0.0, 2.0]] * 2), torch.zeros(2, 3)
+    light = np.array([[0.1, 0.0, 2.0]])
+    assert near_seen_light(ends, starts, torch.tensor([0.1, 0.04]), light).tolist() == [True, False]
+    assert not near_seen_light(ends, starts, torch.tensor([0.1, 0.1]), None).any()
+
+
+def test_light_points_are_the_pixels_that_show_a_light_at_their_depth():
+    from models.capture import View
+    from models.capture.camera import Camera
+
+    cam = Camera(width=4, height=2, fl_x=4.0, fl_y=4.0, cx=2.0, cy=1.0, c2w=np.eye(4))
+    emission = np.zeros((2, 4, 3), np.float32)
+    emission[0, 1] = 5.0
+    views = [View(name="v", camera=cam, split="train", buffers={"emission": emission})]
+    d = torch.tensor(cam.ray_directions().reshape(-1, 3))
+    rays = RaySet(torch.zeros(8, 3, dtype=torch.float64), d, torch.ones(8, dtype=torch.bool),
+                  {"depth": torch.full((8, 1), 2.0, dtype=torch.float64)}, torch.zeros(8, dtype=torch.long), views)
+    np.testing.assert_allclose(light_points(rays), (2.0 * d[1:2]).numpy())
+    views[0].buffers["emission"] = np.zeros((2, 4, 3), np.float32)
+    assert light_points(rays) is None
 
 
 def test_highlight_fill_on_the_plane_fill_puts_emitters_on_the_rooms_plane_under_the_fill():

@@ -25,6 +25,7 @@ import math
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
 
@@ -37,6 +38,8 @@ PLANE_OFFSET = 0.002  # on_fill_plane: an emitter's distance in front of its pla
 # field, is centimetres)
 ON_FILL_NOTE = 10  # highlight reflections ending on the plane fill from which the highlight fill notes it
 LUMINANCE = (0.2126, 0.7152, 0.0722)
+LOBE_WIDTH = 2.0  # footprint_angle: a GGX lobe's width, x alpha: the reflected directions within which its D stays
+# above a quarter of its peak (half-vector angle atan(alpha), doubled on reflection)
 
 
 def scene_box(gaussians: Gaussians) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -149,6 +152,79 @@ def mirror_rays(rays, max_rays: int, seed: int = 0,
     x = rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
     r = torch.nn.functional.normalize(d - 2 * (d * n).sum(-1, keepdim=True) * n, dim=-1)
     return x, r, index
+
+
+def reflection_spread(rays, index: torch.Tensor) -> torch.Tensor:
+    """[M] the angle (radians) between the perfect reflection of each ray ``index`` and those of its four
+    neighbouring pixels that lie on the same mirror-like surface (``shiny``, valid, depth within 5 % of its own);
+    the largest of them, 0 where none does. At a distance L along the reflection one pixel of the mirror spans
+    about L x this: a flat mirror's pixels keep the camera's pixel angle (~0.01 rad at 128 pixels over 60
+    degrees), a chrome ball's spread it tens of times (zoo_corridor: adjacent pixels of its balls' reflections
+    land 0.37-0.40 m apart on the ceiling). Needs ``rays`` to be its views' pixels in order (``build_rayset``);
+    otherwise 0."""
+    t = rays.targets
+    index = index.reshape(-1).cpu()
+    out = torch.zeros(len(index), dtype=rays.dirs.dtype)
+    sizes = [v.camera.width * v.camera.height for v in rays.views]
+    if sum(sizes) != len(rays) or not len(index) or not all(k in t for k in ("depth", "normal", "f0", "roughness")):
+        return out
+    starts = torch.tensor(np.cumsum([0] + sizes[:-1]), dtype=torch.int64)
+    widths = torch.tensor([v.camera.width for v in rays.views], dtype=torch.int64)
+    heights = torch.tensor([v.camera.height for v in rays.views], dtype=torch.int64)
+    view = torch.searchsorted(starts, index, right=True) - 1
+    local = index - starts[view]
+    row, col, w, h = local // widths[view], local % widths[view], widths[view], heights[view]
+
+    def reflected(i):
+        d = rays.dirs[i].cpu()
+        n = torch.nn.functional.normalize(t["normal"][i].cpu(), dim=-1)
+        return torch.nn.functional.normalize(d - 2 * (d * n).sum(-1, keepdim=True) * n, dim=-1)
+
+    r0, z0 = reflected(index), t["depth"][index].reshape(-1).cpu()
+    for ok, j in ((col > 0, index - 1), (col < w - 1, index + 1), (row > 0, index - w), (row < h - 1, index + w)):
+        j = torch.where(ok, j, index)
+        zj = t["depth"][j].reshape(-1).cpu()
+        same = ok & rays.mask[j].cpu() & shiny(t["f0"][j].cpu(), t["roughness"][j].cpu()) & ((zj - z0).abs() <= 0.05 * z0)
+        angle = torch.arccos((r0 * reflected(j)).sum(-1).clamp(-1.0, 1.0))
+        out = torch.where(same, torch.maximum(out, angle), out)
+    return out
+
+
+def footprint_angle(rays, index: torch.Tensor) -> torch.Tensor:
+    """[M] the angle (radians) a mirror-like pixel's reflection covers: its pixel's spread
+    (``reflection_spread``) plus its glossy lobe, ``LOBE_WIDTH`` x GGX alpha (roughness^2 in the buffers): a
+    brushed-metal fridge (roughness 0.25) blurs a window it reflects over ~0.13 rad round the perfect
+    reflection, and its highlight pixels' centre rays end up to that far beside the window (zoo_lshape: 1,839 of
+    its 2,219 highlight pixels are the fridge's, 322 its pot's, roughness 0.2, 51 the chrome ball's)."""
+    index = index.reshape(-1).cpu()
+    rough = rays.targets["roughness"][index].reshape(-1).cpu().to(rays.dirs.dtype)
+    return reflection_spread(rays, index) + LOBE_WIDTH * rough.clamp(0.0, 1.0) ** 2
+
+
+def light_points(rays) -> np.ndarray | None:
+    """[K, 3] the points of the lights the training views see directly (``emitting_rays``: pixels whose
+    ``emission`` > 0, at their depth), or None when there are none or the rays carry no depth."""
+    if "depth" not in rays.targets:
+        return None
+    lit = torch.from_numpy(emitting_rays(rays)) & rays.mask.cpu()
+    if not bool(lit.any()):
+        return None
+    i = torch.nonzero(lit).reshape(-1)
+    return (rays.origins[i] + rays.dirs[i] * rays.targets["depth"][i].reshape(-1, 1)).double().numpy()
+
+
+def near_seen_light(ends: torch.Tensor, starts: torch.Tensor, spread: torch.Tensor, lights) -> torch.Tensor:
+    """[M] bool: a reflection from ``starts`` [M, 3] (on the mirror) ending at ``ends`` [M, 3] whose footprint
+    there, its length x ``spread`` (``reflection_spread``: one pixel's width), holds a light the cameras see
+    directly (``lights`` [K, 3], ``light_points``). Its pixel showed that light, which has its own Gaussians: a
+    brushed-metal or curved reflector's highlight pixel whose centre ray lands beside a window (zoo_lshape:
+    emitters up to 0.4 m round its window, on the wall no training view sees, glowing 2-4x the wall's radiance in
+    the test views)."""
+    if lights is None or not len(ends):
+        return torch.zeros(len(ends), dtype=torch.bool)
+    radius = ((ends - starts).norm(dim=-1) * spread.to(ends.dtype)).detach().cpu().double().numpy()
+    dist, _ = cKDTree(lights).query(ends.detach().cpu().double().numpy(), k=1)
+    return torch.from_numpy(dist <= radius)
 
 
 def box_exit(x: torch.Tensor, r: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
@@ -333,7 +409,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                              on_fill: bool = False, walls: Gaussians | None = None,
                              planes: list | None = None, known: list | None = None,
                              on_fill_purity: float = 0.0,
-                             on_fill_planes: list | None = None) -> tuple[Gaussians | None, dict]:
+                             on_fill_planes: list | None = None,
+                             skip_seen_lights: bool = False) -> tuple[Gaussians | None, dict]:
     """Emitters seen only in mirrors: one Gaussian per HIGHLIGHT mirror ray, where the light is.
 
     A light that no camera sees directly (a ceiling lamp above an orbit of cameras) has no Gaussians, and
@@ -394,11 +471,17 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     reported (``beyond_known``, a note): zoo_mirror_only's ceiling light got 1,373 emitters at the box's back face,
     up to 0.6 m above its ceiling, and none where 2,119 more of its reflections end on the ceiling's fill; moved
     onto the plane, and with ``on_fill``, the whole light was placed and the unseen floor under it went from 0.79-0.90
-    to 0.84-0.92 of the truth, but no score rose (README, forty-first session)."""
+    to 0.84-0.92 of the truth, but no score rose (README, forty-first session).
+
+    ``skip_seen_lights``: a highlight whose pixel's footprint where its emitter would go (``near_seen_light``: the
+    reflection's length x ``footprint_angle``, the angle to its neighbouring pixels' reflections plus its glossy
+    lobe) holds a light the training views see
+    directly gets no emitter: that light has its own Gaussians, and the emitter would land beside it, where a
+    curved mirror's pixel centre pointed (``seen_light`` counts them, placed and on the fill)."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
              "box_scale_inside": False,
              "on_fill": 0, "on_fill_added": 0, "on_fill_impure": 0, "on_plane": 0, "snapped": 0, "snapped_rows": None,
-             "beyond_known": 0,
+             "beyond_known": 0, "seen_light": 0,
              "notes": []}
     t = rays.targets
     found = mirror_rays(rays, max_rays=len(rays), seed=seed)
@@ -420,7 +503,8 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
     use = ((x > lo) & (x < hi)).all(-1) & (bright | ((radiance @ lum) < level))
     if not bright[use].any():
         return None, stats
-    x, r, radiance, bright = x[use], r[use], radiance[use], bright[use]
+    x, r, radiance, bright, index = x[use], r[use], radiance[use], bright[use], index.cpu()[use.cpu()]
+    lights = light_points(rays) if skip_seen_lights else None
     out = trace_fn(x + step * r, r, gaussians)
     open_ = (out.transmittance.reshape(-1) > 0.5).cpu()
     fill_pos = x[:0]
@@ -469,6 +553,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                                                   PLANE_OFFSET * side, past=PURITY_RADIUS * side,
                                                   offset_along_ray=False)
                     stats["on_plane"] = int((on & met[:n_b]).sum())  # among those placed
+                if lights is not None:
+                    seen = near_seen_light(at[:n_b], x[ends], footprint_angle(rays, index[ends]), lights)
+                    stats["seen_light"] += int((seen & met[:n_b]).sum())
+                    met = torch.cat([met[:n_b] & ~seen, met[n_b:]])
                 fill_pos = at[:n_b][met[:n_b]]
                 fill_radiance = radiance[ends][met[:n_b]]
         if stats["on_fill"] >= ON_FILL_NOTE and not on_fill:
@@ -476,7 +564,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
                 f"highlight fill: {stats['on_fill']} of {int(bright.sum())} highlight reflections end on the plane "
                 "fill (the unseen parts of the room's planes): a light there gets no emitters and is left to "
                 "training, which rarely grows one")
-    x, r, radiance, bright = x[open_], r[open_], radiance[open_], bright[open_]
+    x, r, radiance, bright, index = x[open_], r[open_], radiance[open_], bright[open_], index[open_]
     keep = torch.nonzero(bright).reshape(-1)
     keep = keep[torch.randperm(len(keep), generator=gen)[:max_count]]
     stats["highlight_rays"] = len(keep)
@@ -491,6 +579,10 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
         lo, hi = centre - scale_box * half, centre + scale_box * half
         x, r, radiance = x[keep], r[keep], radiance[keep]
         pos = x + (box_exit(x, r, lo, hi) - 2 * step)[:, None] * r
+        if lights is not None:  # (before the snap onto walls: its footprint where the sweep put it)
+            seen = near_seen_light(pos, x, footprint_angle(rays, index[keep]), lights)
+            stats["seen_light"] += int(seen.sum())
+            x, r, radiance, pos = x[~seen], r[~seen], radiance[~seen], pos[~seen]
         snapped = torch.zeros(len(pos), dtype=torch.bool)
         if known:
             _note_beyond_known(pos, known, 2 * step, stats)

@@ -738,7 +738,8 @@ class Trainer:
                                                     fill=plane_fill, on_fill=cfg.highlight_on_fill, walls=on,
                                                     planes=planes, known=known,
                                                     on_fill_purity=cfg.highlight_on_fill_purity,
-                                                    on_fill_planes=room_planes)
+                                                    on_fill_planes=room_planes,
+                                                    skip_seen_lights=cfg.highlight_skip_seen_lights)
 
                 lights, stats = highlights(later)
                 behind = None
@@ -763,7 +764,7 @@ class Trainer:
                                "%(inside)d moved in front of a wall placed; "
                                "%(on_fill)d more end on the plane fill: %(on_fill_added)d emitting Gaussians there, "
                                "%(on_fill_impure)d left out among dark reflections, %(on_plane)d moved onto a room "
-                               "plane)",
+                               "plane; %(seen_light)d left out beside a light the cameras see)",
                                prior=cfg.highlight_frozen, matte=cfg.highlight_frozen,
                                growth=cfg.highlight_max_growth,
                                growth_rows=None if cfg.highlight_growth_all else stats["snapped_rows"])
