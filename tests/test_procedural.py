@@ -195,3 +195,45 @@ def test_mirror_probes_hide_what_the_training_cameras_see_only_in_the_mirror(tmp
     assert cfg == mirror_probe_scene(21) and "probe --mirror 21" in (tmp_path / "probe_mirror_21.yaml").read_text()
     committed = load_config("probe_mirror_21")
     assert committed["synth"] == cfg["synth"] and committed["evaluate"]["regions"] == cfg["evaluate"]["regions"]
+
+
+def test_lights_probes_put_a_window_in_view_beside_brushed_metal(tmp_path, capsys):
+    """``python -m stages.synth probe --lights``: probe_scene's room with a window (an emitter) on the wall the most
+    training cameras look at, inside three training frames at least (``lights_probe_worthy``), its wall's panels
+    removed, and the largest floor object brushed metal (metallic, roughness 0.15-0.28); the rest of the room, its
+    cameras and its test views are probe_scene's. --mirror and --lights do not go together."""
+    from models.synth.cameras import path_poses
+    from models.synth.procedural import lights_probe_scene, lights_probe_worthy, probe_scene
+    from stages.config import load_config
+    from stages.synth.__main__ import main
+
+    schema = yaml.safe_load((SCHEMAS / "synth.schema.yaml").read_text())
+    assert [s for s in range(40) if lights_probe_worthy(lights_probe_scene(s))] == [0, 23, 28]
+    for seed in (0, 23, 5):
+        doc = lights_probe_scene(seed)
+        jsonschema.validate(doc["synth"], schema)
+        plain = probe_scene(seed)["synth"]
+        assert doc["scene"] == f"probe_lights_{seed}" and doc["synth"]["cameras"] == plain["cameras"]
+        window = next(o for o in doc["synth"]["objects"] if o["name"] == "window")
+        assert max(window["emitter"]["radiance"]) >= 6.0 and window["material"]["base_color"] == [0.0, 0.0, 0.0]
+        floor = next(o for o in doc["synth"]["objects"] if o["name"] == "floor")
+        hx, hz = floor["transform"]["scale"][:2]
+        c = np.array(window["transform"]["translate"])
+        gap = min(hx - abs(c[0]), hz - abs(c[2]))
+        assert 0.0 < gap < 0.01, seed  # on a wall, just inside the room
+        brushed = [o for o in doc["synth"]["objects"] if o["material"].get("metallic") == 1.0
+                   and 0.15 <= o["material"]["roughness"] <= 0.28 and o["shape"] in ("sphere", "cube")]
+        assert len(brushed) >= 1, seed
+        names = {o["name"] for o in doc["synth"]["objects"]}
+        gone = {o["name"] for o in plain["objects"]} - names
+        assert names - {o["name"] for o in plain["objects"]} == {"window"}
+        assert all(o["shape"] == "rectangle" for o in plain["objects"] if o["name"] in gone)
+    assert lights_probe_worthy(lights_probe_scene(0)) and not lights_probe_worthy(lights_probe_scene(5))
+    assert main(["probe", "--lights", "0", "--find", "2", "--out-dir", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["probe_lights_0.yaml", "probe_lights_23.yaml"]
+    cfg = yaml.safe_load((tmp_path / "probe_lights_23.yaml").read_text())
+    assert cfg == lights_probe_scene(23) and "probe --lights" in (tmp_path / "probe_lights_23.yaml").read_text()
+    assert load_config("probe_lights_23")["synth"] == cfg["synth"]  # what the README's numbers ran
+    with pytest.raises(SystemExit):
+        main(["probe", "--lights", "--mirror", "0"])
+    assert "not allowed with" in capsys.readouterr().err

@@ -338,3 +338,76 @@ def mirror_probe_worthy(doc: dict) -> bool:
     floor_objects = [o for o in synth["objects"] if o["shape"] in ("sphere", "cube")]
     seen = [o for o in floor_objects if _seen_by(o, train) > 0]
     return len(seen) < len(floor_objects) and any(_shiny(o["material"]) for o in seen)
+
+
+WALLS = {  # random_scene_config's walls: name -> (axis across it, sign of the wall's side, rotation about y)
+    "wall_back": (2, -1, 0), "wall_front": (2, 1, 180), "wall_left": (0, -1, 90), "wall_right": (0, 1, -90)}
+
+
+def lights_probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views: int = 20, spp: int = 256) -> dict:
+    """A held-out probe of lights in view beside glossy metal: ``probe_scene(seed)`` (its room, orbit and test
+    views) with a window (an emitter, radiance 6-14, 0.6-1.2 x 0.5-0.9 m) on the wall the most training cameras
+    look at (its panels removed) and one floor object turned brushed metal (metallic principled, roughness
+    0.15-0.28: its highlights blur the lights it reflects, as a fridge or a pot does). Real interiors show
+    lamps and windows beside shiny things; the mechanisms that place lights from reflections must not misplace
+    the ones the cameras see (README, fifty-seventh session). Whether the room is worth it:
+    ``lights_probe_worthy``."""
+    from .cameras import path_poses
+    from .spec import parse_camera_path
+
+    doc = probe_scene(seed, resolution=resolution, views=views, spp=spp)
+    synth = doc["synth"]
+    rng = np.random.default_rng([seed, 2057])  # its own stream: the room is random_scene_config(seed)'s
+    floor = next(o for o in synth["objects"] if o["name"] == "floor")
+    ceiling = next(o for o in synth["objects"] if o["name"] == "ceiling")
+    hx, hz = floor["transform"]["scale"][:2]
+    height = ceiling["transform"]["translate"][1]
+    poses = path_poses(parse_camera_path(synth["cameras"]["train"], "train"))
+    looks = {name: sum(float(-p[axis, 2]) * side > 0.5 for p in poses) for name, (axis, side, _) in WALLS.items()}
+    wall = max(WALLS, key=lambda n: (looks[n], n))
+    axis, side, angle = WALLS[wall]
+    at = (hz if axis == 2 else hx) * side
+    synth["objects"] = [o for o in synth["objects"] if not (
+        o["shape"] == "rectangle" and o["name"] not in ("floor", "ceiling") and not o["name"].startswith(("wall_", "light_"))
+        and abs(o["transform"]["translate"][axis] - at) < 0.02)]
+    half = hx if axis == 2 else hz  # the wall's half width
+    w, h = rng.uniform(0.3, 0.6), rng.uniform(0.25, 0.45)
+    along = rng.uniform(-0.5, 0.5) * (half - w - 0.2)
+    y = rng.uniform(h + 0.5, max(h + 0.5, min(1.7, height - h - 0.3)))  # low: the orbit looks down at the room
+    centre = [along, y, at - side * 0.005] if axis == 2 else [at - side * 0.005, y, along]
+    level = rng.uniform(6.0, 14.0)
+    tint = np.array([rng.uniform(0.8, 0.95), rng.uniform(0.9, 1.0), 1.0])  # daylight, a little cool
+    synth["objects"].append({"name": "window", "shape": "rectangle",
+                             "material": {"type": "diffuse", "base_color": [0.0, 0.0, 0.0]},
+                             "transform": {"translate": _rgb(centre), "rotate": [{"axis": [0, 1, 0], "angle": angle}],
+                                           "scale": [_r(w), _r(h), 1]},
+                             "emitter": {"radiance": _rgb(level * tint)}})
+    solid = [o for o in synth["objects"] if o["shape"] in ("sphere", "cube")]
+    if solid:
+        brushed = max(solid, key=lambda o: float(np.prod(o["transform"]["scale"])))
+        brushed["material"] = {"type": "principled", "base_color": _rgb(rng.uniform(0.75, 0.95, 3)),
+                               "roughness": _r(rng.uniform(0.15, 0.28)), "metallic": 1.0, "specular": 0.5}
+    doc["scene"] = f"probe_lights_{seed}"
+    return doc
+
+
+def lights_probe_worthy(doc: dict) -> bool:
+    """A lights probe worth running: its window's centre inside the middle 80 % (each way) of at least three
+    training cameras' frames (seen directly, not only at an edge), and a brushed-metal object."""
+    from .cameras import path_poses
+    from .spec import parse_camera_path
+
+    synth = doc["synth"]
+    window = next((o for o in synth["objects"] if o["name"] == "window"), None)
+    if window is None or not any(o["material"].get("metallic") == 1.0 and 0.1 < o["material"].get("roughness", 0) < 0.3
+                                 for o in synth["objects"] if o["shape"] in ("sphere", "cube")):
+        return False
+    c = np.asarray(window["transform"]["translate"], float)
+    width, height = synth["resolution"]
+    ty = math.tan(math.radians(synth["cameras"]["train"]["fov_y"]) / 2)
+    tx = ty * width / height
+    seen = 0
+    for p in path_poses(parse_camera_path(synth["cameras"]["train"], "train")):
+        x, y, z = (c - p[:3, 3]) @ p[:3, :3]  # camera frame, looking down -z
+        seen += bool(z < 0 and abs(x / -z) < 0.8 * tx and abs(y / -z) < 0.8 * ty)
+    return seen >= 3

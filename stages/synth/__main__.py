@@ -62,6 +62,14 @@ MIRROR_PROBE_HEADER = """\
 """
 
 
+LIGHTS_PROBE_HEADER = """\
+# Held-out lights probe (README, "Held-out probes"): the random room of models.synth.procedural seed {seed} with a
+# window the training cameras see and a brushed-metal object, written by `python -m stages.synth probe --lights
+# {seed}`. Nobody tunes to it: the fills that place lights from reflections must not misplace the ones in view.
+#   snakemake --cores 2 --config scene={scene}
+"""
+
+
 def probe_main(argv: list[str]) -> int:
     """``python -m stages.synth probe SEED...``: held-out probe scene configs (``procedural.probe_scene``)."""
     p = argparse.ArgumentParser(
@@ -71,23 +79,33 @@ def probe_main(argv: list[str]) -> int:
         "--find N: the first N seeds from SEED whose room holds two mirror-like objects and a glossy dielectric. With "
         "--mirror: probe_mirror_<seed>.yaml, the room with a wall mirror that the training cameras face, so what "
         "stands behind them is seen only in it (--find: at least one such floor object, and another shiny metal "
-        "the cameras face).")
+        "the cameras face). With --lights: probe_lights_<seed>.yaml, the room with a window the training cameras "
+        "see and a brushed-metal object (--find: the window well inside at least three training frames).")
     p.add_argument("seeds", type=int, nargs="+", metavar="SEED", help="room seed(s) (models.synth.procedural)")
     p.add_argument("--find", type=int, metavar="N", help="instead: the first N probe-worthy seeds from SEED on")
-    p.add_argument("--mirror", action="store_true",
-                   help="mirror probes (procedural.mirror_probe_scene): what the cameras see only in a wall mirror")
+    kind = p.add_mutually_exclusive_group()
+    kind.add_argument("--mirror", action="store_true",
+                      help="mirror probes (procedural.mirror_probe_scene): what the cameras see only in a wall mirror")
+    kind.add_argument("--lights", action="store_true",
+                      help="lights probes (procedural.lights_probe_scene): a window in view beside brushed metal")
     p.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parents[2] / "configs" / "scenes",
                    help="where the scene configs go (default: configs/scenes)")
     p.add_argument("--force", action="store_true", help="overwrite an existing config")
     args = p.parse_args(argv)
     import yaml
 
-    from models.synth.procedural import (mirror_probe_scene, mirror_probe_worthy, probe_scene, probe_worthy,
-                                         random_scene_config)
+    from models.synth.procedural import (lights_probe_scene, lights_probe_worthy, mirror_probe_scene,
+                                         mirror_probe_worthy, probe_scene, probe_worthy, random_scene_config)
 
-    make, header = (mirror_probe_scene, MIRROR_PROBE_HEADER) if args.mirror else (probe_scene, PROBE_HEADER)
-    worthy = ((lambda s: mirror_probe_worthy(mirror_probe_scene(s))) if args.mirror
-              else (lambda s: probe_worthy(random_scene_config(s))))
+    if args.mirror:
+        make, header = mirror_probe_scene, MIRROR_PROBE_HEADER
+        worthy = lambda s: mirror_probe_worthy(mirror_probe_scene(s))  # noqa: E731
+    elif args.lights:
+        make, header = lights_probe_scene, LIGHTS_PROBE_HEADER
+        worthy = lambda s: lights_probe_worthy(lights_probe_scene(s))  # noqa: E731
+    else:
+        make, header = probe_scene, PROBE_HEADER
+        worthy = lambda s: probe_worthy(random_scene_config(s))  # noqa: E731
 
     if any(s < 0 for s in args.seeds) or (args.find is not None and args.find < 1):
         print("error: seeds must be >= 0 and --find >= 1", file=sys.stderr)
