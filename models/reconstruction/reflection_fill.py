@@ -28,6 +28,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from models.gaussians import Gaussians
+from models.pathtrace.brdf import reflect
 
 SHINY_F0 = 0.3
 SHINY_ROUGHNESS = 0.3
@@ -150,7 +151,7 @@ def mirror_rays(rays, max_rays: int, seed: int = 0,
     d = rays.dirs[index]
     n = torch.nn.functional.normalize(t["normal"][index], dim=-1)
     x = rays.origins[index] + d * t["depth"][index].reshape(-1, 1)
-    r = torch.nn.functional.normalize(d - 2 * (d * n).sum(-1, keepdim=True) * n, dim=-1)
+    r = torch.nn.functional.normalize(reflect(d, n), dim=-1)
     return x, r, index
 
 
@@ -176,9 +177,8 @@ def reflection_spread(rays, index: torch.Tensor) -> torch.Tensor:
     row, col, w, h = local // widths[view], local % widths[view], widths[view], heights[view]
 
     def reflected(i):
-        d = rays.dirs[i].cpu()
         n = torch.nn.functional.normalize(t["normal"][i].cpu(), dim=-1)
-        return torch.nn.functional.normalize(d - 2 * (d * n).sum(-1, keepdim=True) * n, dim=-1)
+        return torch.nn.functional.normalize(reflect(rays.dirs[i].cpu(), n), dim=-1)
 
     r0, z0 = reflected(index), t["depth"][index].reshape(-1).cpu()
     for ok, j in ((col > 0, index - 1), (col < w - 1, index + 1), (row > 0, index - w), (row < h - 1, index + w)):
@@ -215,7 +215,7 @@ def light_points(rays) -> np.ndarray | None:
 
 def near_seen_light(ends: torch.Tensor, starts: torch.Tensor, spread: torch.Tensor, lights) -> torch.Tensor:
     """[M] bool: a reflection from ``starts`` [M, 3] (on the mirror) ending at ``ends`` [M, 3] whose footprint
-    there, its length x ``spread`` (``reflection_spread``: one pixel's width), holds a light the cameras see
+    there, its length x ``spread`` (``footprint_angle``: one pixel's width and its glossy lobe), holds a light the cameras see
     directly (``lights`` [K, 3], ``light_points``). Its pixel showed that light, which has its own Gaussians: a
     brushed-metal or curved reflector's highlight pixel whose centre ray lands beside a window (zoo_lshape:
     emitters up to 0.4 m round its window, on the wall no training view sees, glowing 2-4x the wall's radiance in
@@ -475,8 +475,7 @@ def highlight_fill_gaussians(rays, trace_fn, gaussians: Gaussians, brightness: f
 
     ``skip_seen_lights``: a highlight whose pixel's footprint where its emitter would go (``near_seen_light``: the
     reflection's length x ``footprint_angle``, the angle to its neighbouring pixels' reflections plus its glossy
-    lobe) holds a light the training views see
-    directly gets no emitter: that light has its own Gaussians, and the emitter would land beside it, where a
+    lobe) holds a light the training views see directly gets no emitter: that light has its own Gaussians, and the emitter would land beside it, where a
     curved mirror's pixel centre pointed (``seen_light`` counts them, placed and on the fill)."""
     stats = {"mirror_rays": 0, "highlight_rays": 0, "added": 0, "box_scale": 1.0, "box_scale_range": "none",
              "box_scale_inside": False,

@@ -273,6 +273,14 @@ def _shiny(material: dict) -> bool:
     return metal and float(material.get("roughness", 0.0)) < 0.3
 
 
+def _without_panels(objects: list[dict], axis: int, at: float, tol: float) -> list[dict]:
+    """``objects`` less the panels (``_objects``' rectangles hung on a wall) whose centre's coordinate ``axis`` is
+    within ``tol`` of ``at``: those on one wall."""
+    return [o for o in objects if not (
+        o["shape"] == "rectangle" and o["name"] not in ("floor", "ceiling") and not o["name"].startswith(("wall_", "light_"))
+        and abs(o["transform"]["translate"][axis] - at) < tol)]
+
+
 def mirror_probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views: int = 20, spp: int = 256) -> dict:
     """A held-out probe of what the cameras see only in a planar mirror: the random room of ``seed``
     (``random_scene_config``: its walls, lights and objects unchanged) with a wall mirror (a perfect conductor
@@ -287,9 +295,7 @@ def mirror_probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views
     hx, hz = floor["transform"]["scale"][:2]
     height = ceiling["transform"]["translate"][1]
     back = -hz + 0.01  # where random_scene_config hangs the back wall's panels
-    synth["objects"] = [o for o in synth["objects"] if not (
-        o["shape"] == "rectangle" and o["name"] not in ("floor", "ceiling") and not o["name"].startswith(("wall_", "light_"))
-        and abs(o["transform"]["translate"][2] - back) < 1e-3)]
+    synth["objects"] = _without_panels(synth["objects"], 2, back, 1e-3)
     mw, mh = min(hx - 0.3, 1.6), min((height - 0.5) / 2, 1.0)
     my = 0.3 + mh
     synth["objects"].append({"name": "mirror", "shape": "rectangle",
@@ -367,9 +373,7 @@ def lights_probe_scene(seed: int, resolution: tuple[int, int] = (128, 96), views
     wall = max(WALLS, key=lambda n: (looks[n], n))
     axis, side, angle = WALLS[wall]
     at = (hz if axis == 2 else hx) * side
-    synth["objects"] = [o for o in synth["objects"] if not (
-        o["shape"] == "rectangle" and o["name"] not in ("floor", "ceiling") and not o["name"].startswith(("wall_", "light_"))
-        and abs(o["transform"]["translate"][axis] - at) < 0.02)]
+    synth["objects"] = _without_panels(synth["objects"], axis, at, 0.02)
     half = hx if axis == 2 else hz  # the wall's half width
     w, h = rng.uniform(0.3, 0.6), rng.uniform(0.25, 0.45)
     along = rng.uniform(-0.5, 0.5) * (half - w - 0.2)
