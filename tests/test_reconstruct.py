@@ -17,6 +17,7 @@ from models.reconstruction.data import build_rayset
 from models.gaussians import Gaussians
 from models.metrics import psnr
 from models.reconstruction.trainer import REFERENCE_HEIGHT
+from models.reconstruction.reflection_fill import seen_by_cameras
 from models.synth import render_capture
 
 SMALL = dict(iterations=160, warmup=80, rays_per_step=768, prune_from=100, prune_every=50, log_every=10,
@@ -237,6 +238,62 @@ def test_pruning_keeps_what_the_views_see_only_in_mirrors(book):
     seen_direct, seen_both = int((direct[far] >= threshold).sum()), int((both[far] >= threshold).sum())
     assert seen_both > 3 * seen_direct + 100  # the mirror sees far more of the far field than the holes of the walls
     assert torch.all(both[~far] >= direct[~far] - 1e-6)
+    free = trainer._free_rows().cpu()  # prune_hidden tests the scene's own, not the far field
+    assert not free[far].any() and free[~far].sum() > 100
+
+
+def test_pruning_removes_what_every_camera_hides_of_the_initialisation(demo):
+    """``prune_hidden``: a pruning step removes the initialisation's Gaussians that no training camera sees
+    (``seen_by_cameras``: behind the surface every view's depth shows there, or outside every frame; probe_mirror_213:
+    one had moved behind a sphere, where only the wall mirror saw it, and covered the sphere in the test views),
+    whatever their blending weight; a mirror fill's, an emitter's and a prior's stay; off, nothing goes for it."""
+    capture, init = demo
+    for on in (True, False):
+        cfg = dict(SMALL, plane_fill_count=0, sphere_fill=False, prune_views=100, prune_hidden=on)
+        trainer = Trainer(capture, init, ReconstructConfig.from_dict(cfg), tracer())
+        threshold = trainer.config.prune_min_weight * (trainer.rays.views[0].camera.height / REFERENCE_HEIGHT) ** 2
+        n = len(trainer.params["means"])
+        centre = torch.tensor(np.stack([v.camera.origin for v in trainer.rays.views]).mean(0), dtype=torch.float32)
+        with torch.no_grad():  # rows 0-3 far below the floor (behind it from every camera), tiny
+            trainer.params["means"][:4] = centre + torch.tensor([0.0, -50.0, 0.0])
+            trainer.params["log_scales"][:4] = -6.0
+        trainer.reflected[1] = True  # a mirror fill's
+        trainer.scale_cap[2] = 0.0  # an emitter's (capped)
+        trainer.prior[3] = True
+        trainer.blending_weights = lambda views, reflections=False: torch.full((len(trainer.params["means"]),),
+                                                                               10 * threshold)
+        kept = trainer.params["means"].detach()[1:4].clone()
+        removed = trainer.prune()
+        assert len(trainer.params["means"]) == n - removed and trainer.pruned_hidden == removed
+        rows = trainer.params["means"].detach()
+        if on:  # row 0 (and whatever else of the initialisation no camera sees: none here) went, the fills stay
+            assert removed == 1 and torch.equal(rows[0:3], kept)
+        else:
+            assert removed == 0 and torch.equal(rows[1:4], kept)
+
+
+def test_seen_by_cameras_is_what_a_view_shows_not_what_its_surfaces_hide(book):
+    """``seen_by_cameras``: a point on a surface a view shows is seen; the same point moved well behind that
+    surface, or out of every frame, is not; a large Gaussian there reaches out (its size counts); a view without
+    a depth buffer sees all of its frame."""
+    capture, _ = book
+    views = capture.split("train")
+    view = views[0]
+    cam = view.camera
+    h, w = cam.height, cam.width
+    dirs = cam.ray_directions().reshape(h, w, 3)
+    depth = np.asarray(view.buffers["depth"])[..., 0]
+    r, c = h // 2, w // 2
+    on = cam.origin + dirs[r, c] * depth[r, c]
+    far_behind = cam.origin + dirs[r, c] * depth[r, c] * 3.0
+    pts = torch.tensor(np.stack([on, far_behind, far_behind]))
+    sizes = torch.tensor([0.001, 0.001, depth[r, c] * 2.0])
+    seen = seen_by_cameras(pts, sizes, [view])
+    assert seen.tolist() == [True, False, True]
+    outside = torch.tensor(cam.origin - 5.0 * dirs[r, c])[None]  # behind the camera: in no frame
+    assert not seen_by_cameras(outside, torch.tensor([0.001]), views).any()
+    bare = dataclasses.replace(view, buffers={k: v for k, v in view.buffers.items() if k != "depth"})
+    assert seen_by_cameras(pts, sizes, [bare]).all()
 
 
 def _room(n_views=2, width=32, height=24):

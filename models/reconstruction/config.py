@@ -145,6 +145,16 @@ class ReconstructConfig:
     prune_min_weight: float = setting(0.1, "keep Gaussians whose blending weight summed over a view, averaged over "
                                       "views, is >= this at the reference's 768-pixel image height (scaled by "
                                       "(H / 768)^2 at height H)", minimum=0)
+    prune_hidden: bool = setting(True, "a pruning step also removes the initialisation's Gaussians (none a fill "
+                                 "placed) that every training camera's view of the room hides: outside its frame, "
+                                 "or behind the surface its depth buffer shows there by more than "
+                                 "HIDDEN_SLACK of that depth plus HIDDEN_REACH x the Gaussian's largest scale. "
+                                 "Placed on what the cameras saw, such a Gaussian has moved where only "
+                                 "reflections train it, and nothing holds its depth (probe_mirror_213: a dark "
+                                 "disc 11 cm over the floor behind a copper sphere, seen only in the wall mirror, "
+                                 "covered the sphere in the test views; README). What the cameras see only in "
+                                 "mirrors is the mirror fills' (their Gaussians, the far field's, the emitters' "
+                                 "and the priors' are not tested)")
     prune_views: int = setting(8, "views traced to measure blending weights at a pruning step: the next block of a "
                                "random cycle through the training views; a Gaussian goes once the blocks have "
                                "covered them all (Trainer.prune)", minimum=1)

@@ -256,6 +256,42 @@ def seen_empty(points: torch.Tensor, views, margin: float = 0.9) -> torch.Tensor
     return empty
 
 
+HIDDEN_SLACK = 0.05  # seen_by_cameras: a point this share of the pixel's depth behind its surface is still on it
+HIDDEN_REACH = 2.0  # ... and this many times its Gaussian's largest scale (a large one reaches out of hiding)
+
+
+def seen_by_cameras(points: torch.Tensor, sizes: torch.Tensor, views, slack: float = HIDDEN_SLACK,
+                    reach: float = HIDDEN_REACH) -> torch.Tensor:
+    """[N] bool: some view's camera sees the point (a Gaussian's mean, ``sizes`` [N] its largest scale): it lies
+    in the view's frame, and either the view has no depth there (no depth buffer, masked out, a pixel that hits
+    nothing) or it is not behind the surface the pixel shows by more than ``slack`` x that depth + ``reach`` x its
+    size. The rest are hidden from every camera: behind the objects they see, under them, inside them, outside
+    every frame."""
+    seen = torch.zeros(len(points), dtype=torch.bool)
+    p = points.detach().double().cpu().numpy()
+    size = sizes.detach().double().cpu().numpy().reshape(-1)
+    for view in views:
+        cam = view.camera
+        u, v, z = cam.project(p)
+        col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        inside = (z > 1e-9) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        if not inside.any():
+            continue
+        idx = np.nonzero(inside)[0]
+        if "depth" not in view.buffers:
+            seen[torch.from_numpy(idx)] = True
+            continue
+        r, c = row[idx], col[idx]
+        depth = view.buffers["depth"][r, c, 0].astype(np.float64)
+        known = np.isfinite(depth) & (depth > 0)
+        if "mask" in view.buffers:
+            known &= view.buffers["mask"][r, c, 0] > 0.5
+        dist = np.linalg.norm(p[idx] - cam.origin, axis=1)
+        ok = ~known | (dist <= (1.0 + slack) * np.where(known, depth, 0.0) + reach * size[idx])
+        seen[torch.from_numpy(idx[ok])] = True
+    return seen
+
+
 @torch.no_grad()
 def reflection_fill_gaussians(rays, trace_fn, gaussians: Gaussians, count: int, seed: int = 0,
                               per_ray: int = 8, open_transmittance: float = 0.5,

@@ -48,7 +48,7 @@ from .sphere_fill import sphere_fill_gaussians
 from .sphere_snap import snap_spheres
 from .back_fill import back_fill
 from .room_closing import close_behind_lights, close_room, keep_inside, placed_walls, shown_planes
-from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians
+from .reflection_fill import highlight_fill_gaussians, mirror_rays, reflection_fill_gaussians, seen_by_cameras
 
 PRIOR_NEIGHBOURS = 8  # neighbours of a plane-fill Gaussian in the colour-smoothness term (loss.prior_smooth)
 log = logging.getLogger("models.reconstruction")
@@ -129,6 +129,7 @@ class Trainer:
         # Gaussian's mean blending weight in the last blocks
         self._prune_order: torch.Tensor | None = None
         self._prune_round = 0
+        self.pruned_hidden = 0  # of them, the initialisation's that every camera's view hides (prune_hidden)
         self.prune_memory = torch.zeros((len(self.prior), 0), device=self.device)
         self._prior_rows: torch.Tensor | None = None  # rows of ``prior`` (made when first needed), see _freeze_priors
         self._prior_nbrs: torch.Tensor | None = None  # [P, 8] each prior Gaussian's nearest priors (_prior_smooth)
@@ -799,6 +800,8 @@ class Trainer:
             self.check_finite()
         if cfg.prune_every > 0 and self.step >= cfg.prune_from and self.step % cfg.prune_every == 0:
             metrics["pruned"] = self.prune()
+            if self.pruned_hidden:
+                metrics["pruned_hidden"] = self.pruned_hidden  # so far
         metrics["step"] = self.step
         metrics["gaussians"] = len(self.params["means"])
         return metrics
@@ -950,6 +953,11 @@ class Trainer:
                 acc += grad[:, 0]
         return acc / max(len(views), 1)
 
+    def _free_rows(self) -> torch.Tensor:
+        """[N] bool: the Gaussians no fill placed (the initialisation's): not a prior, a mirror fill's, fixed, the
+        far field's or a capped emitter."""
+        return ~(self.prior | self.reflected | self.fixed | self.far | torch.isfinite(self.scale_cap))
+
     def prune(self) -> int:
         """Remove the Gaussians whose blending weight, averaged over ALL the training views, is below the threshold
         (``prune_min_weight``), the prior's excepted. A pruning step traces ``prune_views`` of them, the next
@@ -977,6 +985,14 @@ class Trainer:
         measured = ~torch.isnan(self.prune_memory).any(dim=1)
         low = measured & (self.prune_memory.nan_to_num(0.0).mean(dim=1) < threshold)
         keep = ~low | self.prior
+        if self.config.prune_hidden:
+            # the initialisation's Gaussians that every camera's view of the room hides (seen_by_cameras): what
+            # reflections alone train, with nothing to hold their depth, floaters for a new view
+            free = torch.nonzero(self._free_rows() & keep).reshape(-1)
+            size = self.params["log_scales"].detach()[free].amax(dim=1).exp()
+            hidden = free[~seen_by_cameras(self.params["means"].detach()[free], size, self.rays.views).to(free.device)]
+            keep[hidden] = False
+            self.pruned_hidden += len(hidden)
         removed = int((~keep).sum())
         if removed and keep.any():
             self._replace(keep=keep)
@@ -1050,6 +1066,7 @@ class Trainer:
             "far": self.far.clone(),
             "scale_cap": self.scale_cap.clone(),
             "prune_order": self._prune_order, "prune_round": self._prune_round,
+            "pruned_hidden": self.pruned_hidden,
             "prune_memory": self.prune_memory.clone(),
             "thickness_box": self._thickness_box,
             "stereo_rays": self.stereo_rays,
@@ -1073,6 +1090,7 @@ class Trainer:
         self.scale_cap = state.get("scale_cap", torch.full((len(self.prior),), math.inf)).to(self.device)
         self._capped_rows = None
         self._prune_order, self._prune_round = state.get("prune_order"), state.get("prune_round", 0)
+        self.pruned_hidden = int(state.get("pruned_hidden", 0))
         self._thickness_box = state.get("thickness_box")
         self.stereo_rays = state.get("stereo_rays")
         if self.stereo_rays is not None:
@@ -1298,6 +1316,11 @@ def train(trainer: Trainer, out_dir: Path, progress: bool = True,
             if on_step:
                 on_step(metrics)
     bar.close()
+    if trainer.step >= cfg.iterations and trainer.pruned_hidden:
+        message = (f"pruning: {trainer.pruned_hidden} of the initialisation's Gaussians went where every training "
+                   "camera's view of the room hides them (prune_hidden)")
+        log.info("%s", message)
+        trainer.decisions.append(message)
     if trainer.step >= cfg.iterations and cfg.sphere_snap:
         trainer.snap_spheres()
         metrics["gaussians"] = len(trainer.gaussians())
